@@ -1,0 +1,20 @@
+"""adjointsim: numba PDE solvers with hand-written discrete adjoints.
+
+No torch import here: the torch layer lives in the ``train`` package.
+"""
+
+from .registry import all_classes, get, names, register
+from .stepper import Choice, Cotangents, NonFiniteStateError, Range, Stepper
+
+__all__ = [
+    "Choice",
+    "Cotangents",
+    "NonFiniteStateError",
+    "Range",
+    "Stepper",
+    "all_classes",
+    "get",
+    "names",
+    "register",
+]
+__version__ = "0.1.0"
