@@ -213,7 +213,8 @@ class Stepper:
         params: Mapping[str, float] | Sequence[float] | np.ndarray | None,
         dtype: Any,
     ) -> np.ndarray:
-        """Scene parameters in kernel order, as an array of ``dtype``, stability-checked."""
+        """Scene parameters in kernel order, as an array of the state's ``dtype``, checked
+        against the scheme's stability limits."""
         if params is None:
             values = np.array(self.param_values, dtype=np.float64)
         elif isinstance(params, Mapping):
@@ -225,10 +226,10 @@ class Stepper:
                 )
             values = np.array(
                 [params.get(k, v) for k, v in zip(self.param_names, self.param_values)],
-                dtype=np.result_type(np.float64, *[np.asarray(v) for v in params.values()]),
+                dtype=np.float64,
             )
         else:
-            values = np.asarray(params)
+            values = np.asarray(params, dtype=np.float64)
             if values.shape != (len(self.param_names),):
                 raise ValueError(
                     f"{self.name} takes {len(self.param_names)} parameter(s) "
@@ -236,8 +237,8 @@ class Stepper:
                 )
         if not np.all(np.isfinite(values)):
             raise ValueError(f"{self.name}: parameters {values} must be finite")
-        self.check_params(values.real.astype(np.float64))
-        return np.ascontiguousarray(values, dtype=np.result_type(dtype, values.dtype))
+        self.check_params(values)
+        return np.ascontiguousarray(values, dtype=dtype)
 
     def _check_state(self, u: np.ndarray, what: str) -> np.ndarray:
         u = np.asarray(u)
@@ -248,8 +249,9 @@ class Stepper:
             )
         expected = (self.channels, *self.grid_shape)
         if u.ndim != len(expected) + 1 or u.shape[1:] != expected:
+            dims = ", ".join(map(str, expected))
             raise ValueError(
-                f"{self.name}: {what} has shape {u.shape}; expected (B, {', '.join(map(str, expected))})"
+                f"{self.name}: {what} has shape {u.shape}; expected (B, {dims})"
                 " = (batch, channels, *grid)"
             )
         if not np.all(np.isfinite(u)):

@@ -1,3 +1,9 @@
-"""Built-in solvers. Each module registers its steppers on import."""
+"""Built-in solvers. Importing this package imports every module in it, and each module
+registers its steppers with :func:`adjointsim.registry.register`: adding a solver means adding a
+module here, nothing else."""
 
-from . import ftcs  # noqa: F401
+import importlib
+import pkgutil
+
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")

@@ -1,0 +1,81 @@
+"""The ``adjointsim`` command line: ``gradcheck`` here; the torch commands live in ``train``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+
+from . import registry
+
+
+def _gradcheck(args: argparse.Namespace) -> int:
+    from .check import TOLERANCES, check
+
+    if args.list:
+        print("\n".join(registry.names()))
+        return 0
+    if args.all == bool(args.names):
+        print("gradcheck: name solvers or pass --all (see --list)", file=sys.stderr)
+        return 2
+    names = registry.names() if args.all else args.names
+    for name in names:
+        registry.get(name)  # unknown names fail before any work
+    start = time.perf_counter()
+    progress = None
+    if not args.json:
+        def progress(name: str) -> None:
+            print(f"checking {name} ...", file=sys.stderr, flush=True)
+
+    rows = check(names, steps=args.steps, dtype=args.dtype, seed=args.seed, progress=progress)
+    ok = all(r.passed for r in rows)
+    if args.json:
+        print(json.dumps([r.as_dict() for r in rows]))
+        return 0 if ok else 1
+    tol = TOLERANCES[args.dtype]
+    print(
+        f"{args.dtype}, {args.steps} steps, seed {args.seed}; pass if dot-product rel. error "
+        f"<= {tol['dot']:g}, Taylor rate >= {tol['rate']:g}, central-FD rel. error <= {tol['fd']:g}"
+    )
+    width = max(len(r.solver) for r in rows) if rows else 6
+    print(f"{'solver':<{width}}  {'wrt':<16} {'dot_rel_err':>11} {'taylor_rate':>11} "
+          f"{'fd_rel_err':>10}  result")
+    for r in rows:
+        print(f"{r.solver:<{width}}  {r.wrt:<16} {r.dot_rel_err:11.2e} {r.taylor_rate:11.3f} "
+              f"{r.fd_rel_err:10.2e}  {'pass' if r.passed else 'FAIL'}")
+    failed = sum(not r.passed for r in rows)
+    print(f"{len(rows) - failed} passed, {failed} failed in {time.perf_counter() - start:.1f} s")
+    return 0 if ok else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="adjointsim", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    g = sub.add_parser(
+        "gradcheck",
+        help="verify the discrete adjoints (dot-product, Taylor and finite-difference tests)",
+    )
+    g.add_argument("names", nargs="*", help="registered solver names (see --list)")
+    g.add_argument("--all", action="store_true", help="check every registered solver")
+    g.add_argument("--list", action="store_true", help="print the registered solver names")
+    g.add_argument("--steps", type=int, default=50, help="rollout length (default 50)")
+    g.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--json", action="store_true", help="print only a JSON list of rows")
+    g.set_defaults(func=_gradcheck)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (KeyError, ValueError) as e:
+        print(f"adjointsim {args.command}: {e.args[0] if e.args else e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
