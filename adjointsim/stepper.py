@@ -125,6 +125,11 @@ class Stepper:
         """A small scene for checks and benchmarks."""
         return cls()
 
+    @classmethod
+    def benchmark_scene(cls, n: int) -> Stepper:
+        """The default scene at ``n`` points per axis (the benchmarks' size knob)."""
+        return cls(n=n)
+
     def random_state(
         self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64
     ) -> np.ndarray:
@@ -196,9 +201,10 @@ class Stepper:
 
         ``cotangents`` is one array of the state's shape (the cotangent of u_n), an array of
         shape (n + 1, B, C, *grid) (one per state), or a mapping from step index (negative
-        counts from n) to the cotangent of that state. ``checkpoint=k`` keeps only every k-th
-        state and recomputes the others segment by segment: memory O(n/k + k), one extra
-        forward pass. By default every state is kept.
+        counts from n) to the cotangent of that state. ``checkpoint=s`` holds at most ``s``
+        states at once (s ≥ 4) and recomputes the rest from checkpoints, nesting segments when
+        one level does not fit (memory s states, about log_s(n) extra forward passes). By
+        default every state is kept.
         """
         u0 = self._check_state(u0, "u0")
         n = _check_steps(n)
@@ -336,36 +342,23 @@ class Stepper:
         checkpoint: int | None,
         controlled: bool,
     ) -> Cotangents:
+        if checkpoint is not None and checkpoint < 4:
+            raise ValueError(f"checkpoint must hold at least 4 states, not {checkpoint}")
         dtype = np.result_type(u0, p, cot)
-        seg = n if checkpoint is None else max(1, min(int(checkpoint), n))
-        starts = list(range(0, n, seg)) if n else []
-        if len(starts) <= 1:
-            trajectory = self._run(u0, n, ctrl, p, keep_all=True)
-            checkpoints = [trajectory[0]]
-            last = trajectory[n]
-        else:
-            # Forward sweep keeping only the segment starts.
-            checkpoints, u = [], u0
-            for s in starts:
-                checkpoints.append(np.array(u, dtype=dtype))
-                m = min(seg, n - s)
-                u = self._run(u, m, ctrl[s : s + m] if ctrl.shape[0] else ctrl, p, False)[m % 2]
-            last = u
-        if not np.all(np.isfinite(last)):
-            self._raise_if_nonfinite(np.stack([u0, last]), False, u0, ctrl, p)
-
         ubar = np.zeros(u0.shape, dtype=dtype)
         if cmap[n] >= 0:
             ubar += cot[cmap[n]]
         cbar = np.zeros(ctrl.shape, dtype=dtype)
         pbar = np.zeros(len(self.param_names), dtype=np.result_type(np.float64, dtype))
-        for s, start_state in zip(reversed(starts), reversed(checkpoints)):
-            m = min(seg, n - s)
-            c = ctrl[s : s + m] if ctrl.shape[0] else ctrl
-            cb = cbar[s : s + m] if cbar.shape[0] else cbar
-            if len(starts) > 1:
-                trajectory = self._run(start_state, m, c, p, keep_all=True)
-            self._adjoint(trajectory[:m], c, p, cot, cmap[s : s + m], ubar, cb, pbar, wrt_params)
+        budget = n + 2 if checkpoint is None else int(checkpoint)
+        sweep = _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params)
+        sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget)
+        if not np.all(np.isfinite(ubar)):
+            self._raise_if_nonfinite(self._run(u0, n, ctrl, p, keep_all=False), False, u0, ctrl, p)
+            raise FloatingPointError(
+                f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
+                "stayed finite; the cotangents or the rollout length are too large"
+            )
         return Cotangents(
             state=ubar,
             controls=cbar if controlled else None,
@@ -392,6 +385,69 @@ class Stepper:
         bad = ~np.isfinite(states).reshape(states.shape[0], -1).all(axis=1)
         first = int(np.argmax(bad))
         raise NonFiniteStateError(self.name, offset + first, float(np.abs(states[first - 1]).max()))
+
+
+class _AdjointSweep:
+    """Reverse a rollout segment by segment within a budget of stored states.
+
+    A segment whose states fit the budget is recomputed from its start state with every state
+    kept, then reversed by one adjoint kernel call. A longer one is cut into k pieces whose
+    start states are stored on a forward pass; the pieces are reversed last to first with the
+    budget that remains, recursively, so at most ``budget`` states are alive at once.
+    """
+
+    def __init__(self, stepper, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
+        self.stepper, self.ctrl, self.p = stepper, ctrl, p
+        self.cot, self.cmap, self.ubar, self.cbar, self.pbar = cot, cmap, ubar, cbar, pbar
+        self.want_p = want_p
+
+    def _controls(self, a: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        return a[lo:hi] if a.shape[0] else a
+
+    def _reverse_leaf(self, inputs: np.ndarray, lo: int, hi: int) -> None:
+        self.stepper._adjoint(
+            inputs, self._controls(self.ctrl, lo, hi), self.p, self.cot, self.cmap[lo:hi],
+            self.ubar, self._controls(self.cbar, lo, hi), self.pbar, self.want_p,
+        )
+
+    def reverse(self, u_start: np.ndarray, lo: int, hi: int, budget: int) -> None:
+        m = hi - lo
+        if m == 0:
+            return
+        c = self._controls(self.ctrl, lo, hi)
+        if m + 2 <= budget:  # the m + 1 states and the start state they copy
+            trajectory = self.stepper._run(u_start, m, c, self.p, keep_all=True)
+            self._reverse_leaf(trajectory[:m], lo, hi)
+            return
+        if budget <= 3:
+            # No room for a nested level: recompute each step's input from the segment start.
+            for j in range(m - 1, -1, -1):
+                c = self._controls(self.ctrl, lo, lo + j)
+                ring = self.stepper._run(u_start, j, c, self.p, False)
+                self._reverse_leaf(ring[j % 2][None], lo + j, lo + j + 1)
+            return
+        k = _pieces(m, budget)
+        bounds = [lo + (m * i) // k for i in range(k + 1)]
+        starts, u = [u_start], u_start
+        for a0, a in zip(bounds[:-2], bounds[1:-1]):
+            ring = self.stepper._run(u, a - a0, self._controls(self.ctrl, a0, a), self.p, False)
+            u = ring[(a - a0) % 2].copy()
+            starts.append(u)
+        for i in range(k - 1, -1, -1):
+            # Pieces already reversed have released their start states.
+            self.reverse(starts.pop(), bounds[i], bounds[i + 1], budget - i)
+
+
+def _pieces(m: int, budget: int) -> int:
+    """Fewest pieces so that one more level fits, else half the budget (and recurse).
+
+    Piece i is reversed with ``budget - i`` states, so k ≤ budget - 2 leaves the last piece
+    at least 3.
+    """
+    for k in range(2, budget - 1):
+        if -(-m // k) + 2 <= budget - (k - 1):
+            return k
+    return max(2, min(budget - 2, budget // 2))
 
 
 def _check_steps(n: int) -> int:
