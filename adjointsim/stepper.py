@@ -196,6 +196,7 @@ class Stepper:
         params: Mapping[str, float] | Sequence[float] | np.ndarray | None = None,
         wrt_params: bool = False,
         checkpoint: int | None = None,
+        trajectory: np.ndarray | None = None,
     ) -> Cotangents:
         """Cotangents of u0, the controls and (if ``wrt_params``) the scene parameters.
 
@@ -204,14 +205,25 @@ class Stepper:
         counts from n) to the cotangent of that state. ``checkpoint=s`` holds at most ``s``
         states at once (s ≥ 4) and recomputes the rest from checkpoints, nesting segments when
         one level does not fit (memory s states, about log_s(n) extra forward passes). By
-        default every state is kept.
+        default every state is kept. ``trajectory``, the states u_0 .. u_n of
+        ``rollout(..., keep="all")`` with the same inputs, skips the forward pass.
         """
         u0 = self._check_state(u0, "u0")
         n = _check_steps(n)
         ctrl = self._check_controls(controls, n, u0)
         p = self.param_array(params, u0.dtype)
         cot, cmap = self._check_cotangents(cotangents, n, u0)
-        return self._vjp(u0, n, ctrl, p, cot, cmap, wrt_params, checkpoint, controls is not None)
+        if trajectory is not None and (
+            trajectory.shape != (n + 1, *u0.shape) or trajectory.dtype != u0.dtype
+        ):
+            raise ValueError(
+                f"{self.name}: trajectory has shape {trajectory.shape} and dtype "
+                f"{trajectory.dtype}; expected {(n + 1, *u0.shape)} and {u0.dtype}, "
+                'as returned by rollout(..., keep="all")'
+            )
+        return self._vjp(
+            u0, n, ctrl, p, cot, cmap, wrt_params, checkpoint, controls is not None, trajectory
+        )
 
     # ----------------------------------------------------------------- shared machinery
     def param_array(
@@ -341,6 +353,7 @@ class Stepper:
         wrt_params: bool,
         checkpoint: int | None,
         controlled: bool,
+        trajectory: np.ndarray | None = None,
     ) -> Cotangents:
         if checkpoint is not None and checkpoint < 4:
             raise ValueError(f"checkpoint must hold at least 4 states, not {checkpoint}")
@@ -352,7 +365,10 @@ class Stepper:
         pbar = np.zeros(len(self.param_names), dtype=np.result_type(np.float64, dtype))
         budget = n + 2 if checkpoint is None else int(checkpoint)
         sweep = _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params)
-        sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget)
+        if trajectory is not None:
+            sweep.reverse_stored(np.ascontiguousarray(trajectory[:n]), 0, n)
+        else:
+            sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget)
         if not np.all(np.isfinite(ubar)):
             self._raise_if_nonfinite(self._run(u0, n, ctrl, p, keep_all=False), False, u0, ctrl, p)
             raise FloatingPointError(
@@ -404,7 +420,7 @@ class _AdjointSweep:
     def _controls(self, a: np.ndarray, lo: int, hi: int) -> np.ndarray:
         return a[lo:hi] if a.shape[0] else a
 
-    def _reverse_leaf(self, inputs: np.ndarray, lo: int, hi: int) -> None:
+    def reverse_stored(self, inputs: np.ndarray, lo: int, hi: int) -> None:
         self.stepper._adjoint(
             inputs, self._controls(self.ctrl, lo, hi), self.p, self.cot, self.cmap[lo:hi],
             self.ubar, self._controls(self.cbar, lo, hi), self.pbar, self.want_p,
@@ -417,14 +433,14 @@ class _AdjointSweep:
         c = self._controls(self.ctrl, lo, hi)
         if m + 2 <= budget:  # the m + 1 states and the start state they copy
             trajectory = self.stepper._run(u_start, m, c, self.p, keep_all=True)
-            self._reverse_leaf(trajectory[:m], lo, hi)
+            self.reverse_stored(trajectory[:m], lo, hi)
             return
         if budget <= 3:
             # No room for a nested level: recompute each step's input from the segment start.
             for j in range(m - 1, -1, -1):
                 c = self._controls(self.ctrl, lo, lo + j)
                 ring = self.stepper._run(u_start, j, c, self.p, False)
-                self._reverse_leaf(ring[j % 2][None], lo + j, lo + j + 1)
+                self.reverse_stored(ring[j % 2][None], lo + j, lo + j + 1)
             return
         k = _pieces(m, budget)
         bounds = [lo + (m * i) // k for i in range(k + 1)]
