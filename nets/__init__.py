@@ -1,0 +1,19 @@
+"""Lightweight torch networks for neural time-steppers and correctors.
+
+All convolutional networks pad circularly (periodic domains) and work in 1D or 2D (``dims``).
+"""
+
+from .dilated import DilatedResNet
+from .mlp import MLP
+from .resnet import ResNet
+from .unet import UNet
+
+NETWORKS = {"resnet": ResNet, "dilated": DilatedResNet, "unet": UNet, "mlp": MLP}
+
+
+def parameter_count(net) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in net.parameters() if p.requires_grad)
+
+
+__all__ = ["NETWORKS", "MLP", "DilatedResNet", "ResNet", "UNet", "parameter_count"]

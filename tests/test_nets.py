@@ -1,0 +1,40 @@
+"""Networks: shapes, periodicity (circular padding) and the List et al. parameter counts."""
+
+import pytest
+import torch
+
+from nets import MLP, DilatedResNet, ResNet, UNet, parameter_count
+
+
+def test_resnet_presets_match_list_et_al():
+    assert abs(parameter_count(ResNet.preset("small", 2, 1)) - 33_000) < 500
+    assert abs(parameter_count(ResNet.preset("large", 2, 1)) - 196_000) < 1_000
+
+
+@pytest.mark.parametrize("dims", [1, 2])
+@pytest.mark.parametrize("make", [
+    lambda d: ResNet(2, 1, d, width=8, blocks=2),
+    lambda d: DilatedResNet(2, 1, d, width=8, dilations=(1, 2, 1)),
+    lambda d: UNet(2, 1, d, width=4, levels=2),
+])
+def test_conv_nets_are_translation_equivariant_on_periodic_grids(make, dims):
+    torch.manual_seed(0)
+    net = make(dims).double()
+    shape = (3, 2, 16) if dims == 1 else (3, 2, 16, 16)
+    x = torch.randn(shape, dtype=torch.float64)
+    y = net(x)
+    assert y.shape == (shape[0], 1, *shape[2:])
+    shifted = net(torch.roll(x, 4, dims=-1))
+    torch.testing.assert_close(shifted, torch.roll(y, 4, dims=-1))
+
+
+def test_mlp_activations():
+    for act in ("sin", "tanh", "relu"):
+        assert MLP(3, 2, width=8, depth=2, activation=act)(torch.randn(5, 3)).shape == (5, 2)
+    with pytest.raises(ValueError, match="unknown activation"):
+        MLP(3, 2, activation="swish2")
+
+
+def test_unet_rejects_indivisible_grids():
+    with pytest.raises(ValueError, match="divisible by 4"):
+        UNet(1, 1, 1, levels=2)(torch.randn(1, 1, 18))
