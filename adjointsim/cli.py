@@ -68,8 +68,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: commands that need torch; they live in the ``train`` package and load only when used
+TORCH_COMMANDS = {
+    "data": "generate reference trajectories (HDF5)",
+    "train": "train a neural stepper (ONE/NOG/WIG, prediction/correction)",
+    "eval": "evaluate a trained run: errors, correlation time, stability, plots",
+    "study": "the grid of setups x modes x seeds, with a table and a plot",
+}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in TORCH_COMMANDS:
+        from train.cli import main as train_main
+
+        return train_main(argv)
+    parser = build_parser()
+    parser.epilog = "torch commands (see adjointsim COMMAND --help): " + "; ".join(
+        f"{k}: {v}" for k, v in TORCH_COMMANDS.items()
+    )
+    args = parser.parse_args(argv)
     try:
         return args.func(args)
     except (KeyError, ValueError) as e:

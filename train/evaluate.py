@@ -1,0 +1,167 @@
+"""Evaluation of trained neural steppers (List et al.'s metrics) and the plots people look at.
+
+* relative error over ``horizon`` steps (12 for KS): mean over space and time of
+  (û − u)² / max(u²), max over the reference window, then mean over test rollouts;
+* correlation time: the first step at which the spatial correlation between û and u falls
+  below 0.2, averaged over rollouts (capped at the rollout length);
+* long-rollout stability: the fraction of rollouts that stay finite and below 5× the
+  reference's largest magnitude over the whole test trajectory;
+* the same relative error for the coarse solver alone, the baseline a correction must beat.
+Evaluation runs under ``torch.no_grad()``: the solver stores no tape.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data import Dataset, Split
+from .model import NeuralStepper
+
+TEST_SPLITS = ("interpolation", "extrapolation")
+
+
+@torch.no_grad()
+def rollout(model: NeuralStepper, split: Split, steps: int, dtype: torch.dtype) -> np.ndarray:
+    """Model rollouts from every test trajectory's first frame: (S, steps + 1, C, *grid).
+
+    Rollouts run one trajectory at a time so that one that blows up (filled with inf from
+    there on) does not stop the others.
+    """
+    out = np.full((split.trajectories.shape[0], steps + 1, *split.trajectories.shape[2:]), np.inf)
+    for s in range(out.shape[0]):
+        u = torch.from_numpy(split.trajectories[s : s + 1, 0]).to(dtype)
+        params = torch.from_numpy(split.params[s : s + 1])
+        cond = torch.from_numpy(split.conditions[s : s + 1])
+        out[s, 0] = u[0].numpy()
+        for k in range(1, steps + 1):
+            try:
+                u = model(u, params, cond)
+            except (ValueError, FloatingPointError):  # the solver refuses a blown-up state
+                break
+            if not torch.all(torch.isfinite(u)):
+                break
+            out[s, k] = u[0].numpy()
+    return out
+
+
+@torch.no_grad()
+def coarse_rollout(model: NeuralStepper, split: Split, steps: int) -> np.ndarray:
+    """The coarse solver alone from the same frames (float64)."""
+    rows = []
+    for s in range(split.trajectories.shape[0]):
+        solver = model.solver(float(split.params[s]))
+        u0 = split.trajectories[s, :1].astype(np.float64)
+        rows.append(solver.rollout(u0, steps, keep="all")[:, 0])
+    return np.stack(rows)
+
+
+def relative_error(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Per rollout: mean over steps 1.. and space of (pred − ref)² / max(ref²)."""
+    axes = tuple(range(1, pred.ndim))
+    scale = np.max(ref[:, 1:] ** 2, axis=axes)
+    with np.errstate(over="ignore", invalid="ignore"):
+        err = np.mean((pred[:, 1:] - ref[:, 1:]) ** 2, axis=axes) / scale
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def error_over_time(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Mean over rollouts and space of (pred − ref)² / max(ref²), per step: (steps + 1,)."""
+    space = tuple(range(2, pred.ndim))
+    scale = np.max(ref**2, axis=(1, *space))[:, None]
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.mean(np.mean((pred - ref) ** 2, axis=space) / scale, axis=0)
+
+
+def correlation_time(pred: np.ndarray, ref: np.ndarray, threshold: float = 0.2) -> np.ndarray:
+    """Per rollout, the first step whose spatial correlation with the reference < threshold."""
+    s, t = pred.shape[:2]
+    a = pred.reshape(s, t, -1)
+    b = ref.reshape(s, t, -1)
+    a = a - a.mean(-1, keepdims=True)
+    b = b - b.mean(-1, keepdims=True)
+    with np.errstate(over="ignore", invalid="ignore"):
+        corr = (a * b).sum(-1) / np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
+    below = ~(corr >= threshold)  # NaN (blown-up) counts as decorrelated
+    return np.where(below.any(1), below.argmax(1), t - 1).astype(float)
+
+
+def evaluate(
+    model: NeuralStepper,
+    dataset: Dataset,
+    horizon: int = 12,
+    dtype: torch.dtype = torch.float32,
+    plots: Path | None = None,
+) -> dict:
+    """Metrics per test split and over all test rollouts; optional plots in ``plots``."""
+    results: dict = {}
+    errors, coarse_errors, corr_times, stable = [], [], [], []
+    for name in TEST_SPLITS:
+        split = dataset.splits[name]
+        t = split.trajectories.shape[1] - 1
+        long = rollout(model, split, t, dtype)
+        ref = split.trajectories.astype(np.float64)
+        err = relative_error(long[:, : horizon + 1], ref[:, : horizon + 1])
+        base = None
+        if model.setup == "correction":
+            base = relative_error(coarse_rollout(model, split, horizon), ref[:, : horizon + 1])
+            coarse_errors.append(base)
+        ct = correlation_time(long, ref)
+        bound = 5 * np.max(np.abs(ref), axis=tuple(range(1, ref.ndim)))
+        with np.errstate(invalid="ignore"):
+            ok = np.all(np.isfinite(long), axis=tuple(range(1, long.ndim))) & (
+                np.max(np.abs(long), axis=tuple(range(1, long.ndim))) <= bound
+            )
+        results[name] = {
+            "rel_error": float(np.mean(err)),
+            "coarse_rel_error": None if base is None else float(np.mean(base)),
+            "correlation_time": float(np.mean(ct)),
+            "stable_fraction": float(np.mean(ok)),
+        }
+        errors.append(err)
+        corr_times.append(ct)
+        stable.append(ok)
+        if plots is not None:
+            plot_rollout(long, ref, Path(plots) / f"rollout-{name}.png", horizon)
+    results["rel_error"] = float(np.mean(np.concatenate(errors)))
+    results["coarse_rel_error"] = (
+        float(np.mean(np.concatenate(coarse_errors))) if coarse_errors else None
+    )
+    results["correlation_time"] = float(np.mean(np.concatenate(corr_times)))
+    results["stable_fraction"] = float(np.mean(np.concatenate(stable)))
+    return results
+
+
+def plot_rollout(pred: np.ndarray, ref: np.ndarray, path: Path, horizon: int) -> None:
+    """Space–time (1D) or snapshots (2D) of the first rollout against the reference, and the
+    error over time of all rollouts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    t = min(pred.shape[1], 4 * horizon + 1, 200)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    if pred.ndim == 4:  # (S, T, 1, N): space–time diagrams
+        lim = np.max(np.abs(ref[0, :t, 0]))
+        for ax, data, title in ((axes[0], ref[0, :t, 0], "reference"),
+                                (axes[1], pred[0, :t, 0], "model")):
+            ax.imshow(data.T, aspect="auto", origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
+            ax.set(title=title, xlabel="step", ylabel="x")
+    else:  # (S, T, 1, N, N): final snapshots
+        k = min(t - 1, horizon)
+        lim = np.max(np.abs(ref[0, k, 0]))
+        for ax, data, title in ((axes[0], ref[0, k, 0], f"reference, step {k}"),
+                                (axes[1], pred[0, k, 0], f"model, step {k}")):
+            ax.imshow(data.T, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
+            ax.set(title=title)
+    curve = error_over_time(pred[:, :t], ref[:, :t])
+    axes[2].semilogy(np.arange(t), np.where(np.isfinite(curve), curve, np.nan))
+    axes[2].axvline(horizon, color="gray", lw=0.5)
+    axes[2].set(title="relative error over time", xlabel="step")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,80 @@
+"""Neural time-steppers in the prediction and correction setups of List et al.
+
+* prediction:            û_{t+1} = f(û_t)
+* correction, parallel:  û_{t+1} = S(û_t) + Δt · f(û_t)
+* correction, sequential: ũ = S(û_t);  û_{t+1} = ũ + f(ũ)
+
+S is the coarse solver, run through :mod:`train.bridge`, one scene per problem parameter (the
+batch is split by parameter). The network also sees the problem's conditioning value as a
+constant extra channel. Whether gradients flow through S is decided by the caller: a detached
+state gives a solver call with no tape and no adjoint (NOG), an attached one runs the
+hand-written adjoint in the backward pass (WIG).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+from adjointsim import Stepper
+
+from . import bridge
+
+SETUPS = ("prediction", "correction")
+CORRECTIONS = ("parallel", "sequential")
+
+
+class NeuralStepper(nn.Module):
+    def __init__(
+        self,
+        net: nn.Module,
+        setup: str,
+        solver: Callable[[float], Stepper] | None = None,
+        correction: str = "parallel",
+    ):
+        super().__init__()
+        if setup not in SETUPS:
+            raise ValueError(f"unknown setup {setup!r}; choose from {SETUPS}")
+        if correction not in CORRECTIONS:
+            raise ValueError(f"unknown correction form {correction!r}; choose from {CORRECTIONS}")
+        if setup == "correction" and solver is None:
+            raise ValueError("the correction setup needs a coarse solver")
+        self.net, self.setup, self.correction = net, setup, correction
+        self._make_solver = solver
+        self._solvers: dict[float, Stepper] = {}
+
+    def solver(self, param: float) -> Stepper:
+        if param not in self._solvers:
+            self._solvers[param] = self._make_solver(param)
+        return self._solvers[param]
+
+    def solve(self, u: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+        """One coarse-solver step of every batch element, grouped by scene parameter."""
+        values = params.tolist()
+        unique = sorted(set(values))
+        if len(unique) == 1:
+            return bridge.rollout(self.solver(unique[0]), u.contiguous(), 1)
+        parts, index = [], []
+        for p in unique:
+            idx = torch.tensor([i for i, v in enumerate(values) if v == p])
+            parts.append(bridge.rollout(self.solver(p), u[idx].contiguous(), 1))
+            index.append(idx)
+        return torch.cat(parts)[torch.argsort(torch.cat(index))]
+
+    def _f(self, u: torch.Tensor, conditions: torch.Tensor) -> torch.Tensor:
+        shape = (u.shape[0], 1, *u.shape[2:])
+        c = conditions.to(u.dtype).reshape(-1, *([1] * (u.ndim - 1))).expand(shape)
+        return self.net(torch.cat([u, c], dim=1))
+
+    def forward(
+        self, u: torch.Tensor, params: torch.Tensor, conditions: torch.Tensor
+    ) -> torch.Tensor:
+        if self.setup == "prediction":
+            return self._f(u, conditions)
+        if self.correction == "parallel":
+            dt = self.solver(float(params[0])).dt
+            return self.solve(u, params) + dt * self._f(u, conditions)
+        v = self.solve(u, params)
+        return v + self._f(v, conditions)
