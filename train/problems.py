@@ -125,6 +125,7 @@ PROBLEMS: dict[str, Problem] = {
         sizes={
             "full": {"frames": 5000, "train_per_param": 6, "test_per_param": 10},
             "quick": {"frames": 400, "train_per_param": 2, "test_per_param": 3},
+            "tiny": {"frames": 24, "train_per_param": 1, "test_per_param": 1},
         },
     ),
     "kolmogorov": Kolmogorov(

@@ -1,0 +1,187 @@
+"""The training layer: unroll modes, NOG never runs an adjoint, WIG gradients, resumable
+training (killed and resumed), atomic and validated files."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from train import bridge
+from train import data as datamod
+from train.model import NeuralStepper
+from train.problems import get_problem
+from train.trainer import TrainConfig, build_model, load_checkpoint, train
+from train.unroll import unrolled_loss
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "ks-tiny.h5"
+    datamod.save(datamod.generate("ks", "tiny", seed=0, progress=False), path)
+    return path
+
+
+def _batch(path, m, dtype=torch.float64):
+    split = datamod.load(path).splits["train"]
+    frames = torch.from_numpy(split.trajectories[:4, : m + 1]).to(dtype)
+    return frames, torch.from_numpy(split.params[:4]), torch.from_numpy(split.conditions[:4])
+
+
+def _model(setup="correction", correction="parallel"):
+    cfg = TrainConfig(setup=setup, correction=correction, width=4, blocks=1, dtype="float64")
+    return build_model(cfg)
+
+
+@pytest.mark.parametrize("correction", ["parallel", "sequential"])
+def test_nog_never_runs_the_solver_adjoint_and_wig_does(tiny, correction):
+    model = _model(correction=correction)
+    frames, params, cond = _batch(tiny, 3)
+    before = bridge.ADJOINT_CALLS["count"]
+    unrolled_loss(model, frames, params, cond, "NOG").backward()
+    assert bridge.ADJOINT_CALLS["count"] == before
+    unrolled_loss(model, frames, params, cond, "WIG").backward()
+    assert bridge.ADJOINT_CALLS["count"] > before
+
+
+def test_wig_gradient_matches_finite_differences(tiny):
+    model = _model()
+    frames, params, cond = _batch(tiny, 3)
+    w = model.net.encode.weight
+    loss = unrolled_loss(model, frames, params, cond, "WIG")
+    (grad,) = torch.autograd.grad(loss, w)
+    direction = torch.randn_like(w)
+    eps = 1e-6
+    with torch.no_grad():
+        w += eps * direction
+        plus = unrolled_loss(model, frames, params, cond, "WIG")
+        w -= 2 * eps * direction
+        minus = unrolled_loss(model, frames, params, cond, "WIG")
+        w += eps * direction
+    fd = (plus - minus) / (2 * eps)
+    assert float((grad * direction).sum()) == pytest.approx(float(fd), rel=1e-6)
+
+
+def test_nog_gradient_ignores_the_temporal_chain(tiny):
+    """NOG's gradient equals the sum of one-step gradients taken at the model's own states."""
+    model = _model()
+    frames, params, cond = _batch(tiny, 3)
+    loss = unrolled_loss(model, frames, params, cond, "NOG")
+    g_nog = torch.autograd.grad(loss, model.net.decode.weight)[0]
+    total = torch.zeros_like(g_nog)
+    u = frames[:, 0]
+    for s in range(1, 4):
+        out = model(u.detach(), params, cond)
+        part = torch.mean((out - frames[:, s]) ** 2) / 3
+        total += torch.autograd.grad(part, model.net.decode.weight)[0]
+        u = out
+    torch.testing.assert_close(g_nog, total)
+
+
+def test_mixed_parameters_in_a_batch_use_their_own_solvers(tiny):
+    model = _model()
+    frames, params, cond = _batch(tiny, 1)
+    assert len(set(params.tolist())) > 1
+    together = model.solve(frames[:, 0], params)
+    for i in range(len(params)):
+        alone = model.solve(frames[i : i + 1, 0], params[i : i + 1])
+        torch.testing.assert_close(together[i : i + 1], alone)
+
+
+def test_prediction_setup_calls_no_solver(tiny):
+    model = _model(setup="prediction")
+    frames, params, cond = _batch(tiny, 2)
+    unrolled_loss(model, frames, params, cond, "WIG").backward()
+    assert model._solvers == {}
+
+
+def test_bad_modes_and_setups():
+    with pytest.raises(ValueError, match="unknown setup"):
+        NeuralStepper(torch.nn.Identity(), "projection")
+    with pytest.raises(ValueError, match="unknown config option"):
+        TrainConfig.load(modee="WIG")
+    with pytest.raises(ValueError, match="unknown mode"):
+        TrainConfig.load(mode="BPTT")
+
+
+def _config(tiny, out, **kw):
+    base = dict(data=str(tiny), out=str(out), width=4, blocks=1, unroll=2, epochs=3, batch=2,
+                checkpoint_every=3, mode="WIG", lr=1e-3)
+    base.update(kw)
+    return TrainConfig.load(**base)
+
+
+def test_resume_after_interruption_gives_the_same_weights(tiny, tmp_path):
+    full = train(_config(tiny, tmp_path / "a"), progress=False)
+    cut = _config(tiny, tmp_path / "b", max_iterations=7)
+    train(cut, progress=False)
+    assert load_checkpoint(tmp_path / "b" / "checkpoint.pt")["state"]["total"] == 7
+    resumed = train(_config(tiny, tmp_path / "b"), resume=True, progress=False)
+    for a, b in zip(full.state_dict().values(), resumed.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert (tmp_path / "b" / "training.png").exists()
+
+
+def test_killed_run_resumes_to_the_uninterrupted_weights(tiny, tmp_path):
+    args = ["--data", str(tiny), "--width", "4", "--blocks", "1", "--unroll", "2", "--epochs",
+            "6", "--batch", "2", "--checkpoint-every", "2", "--mode", "NOG"]
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    cmd = [sys.executable, "-m", "adjointsim.cli", "train"]
+    subprocess.run(cmd + args + ["--out", str(tmp_path / "a")], check=True, env=env,
+                   capture_output=True)
+    proc = subprocess.Popen(cmd + args + ["--out", str(tmp_path / "b")], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = tmp_path / "b" / "checkpoint.pt"
+    deadline = time.time() + 300
+    while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done = load_checkpoint(ckpt)["state"]["total"]
+    total = load_checkpoint(tmp_path / "a" / "checkpoint.pt")["state"]["total"]
+    assert done < total, "the run finished before it could be killed"
+    subprocess.run(cmd + args + ["--out", str(tmp_path / "b"), "--resume"], check=True, env=env,
+                   capture_output=True)
+    a = load_checkpoint(tmp_path / "a" / "checkpoint.pt")["model"]
+    b = load_checkpoint(ckpt)["model"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+
+
+def test_corrupt_files_get_clear_errors(tiny, tmp_path):
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not an hdf5 file")
+    with pytest.raises(ValueError, match="regenerate"):
+        datamod.load(bad)
+    ckpt = tmp_path / "checkpoint.pt"
+    ckpt.write_bytes(b"\x00" * 10)
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        load_checkpoint(ckpt)
+
+
+def test_dataset_write_is_atomic(tiny, tmp_path, monkeypatch):
+    ds = datamod.load(tiny)
+    target = tmp_path / "d.h5"
+    datamod.save(ds, target)
+    before = target.read_bytes()
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr("h5py.Group.create_dataset", boom)
+    with pytest.raises(RuntimeError):
+        datamod.save(ds, target)
+    assert target.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["d.h5"]
+
+
+def test_dataset_metadata_and_splits(tiny):
+    ds = datamod.load(tiny)
+    problem = get_problem("ks")
+    assert set(ds.splits) == {"train", "interpolation", "extrapolation"}
+    assert sorted(set(ds.splits["train"].params)) == list(problem.train_params)
+    assert ds.splits["train"].trajectories.dtype == np.float32
