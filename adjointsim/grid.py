@@ -73,35 +73,22 @@ def laplacian(u, out, inv_hx2, inv_hy2, bc):
 
 @njit(cache=True, inline="always")
 def _edge_point(v, i, j, nx, ny, inv_hx2, inv_hy2, bc):
-    left = v[i - 1, j] if i > 0 else _ghost(v[0, j], v[nx - 1, j], bc)
-    right = v[i + 1, j] if i < nx - 1 else _ghost(v[nx - 1, j], v[0, j], bc)
+    left = v[i - 1, j] if i > 0 else ghost(v[0, j], v[nx - 1, j], bc)
+    right = v[i + 1, j] if i < nx - 1 else ghost(v[nx - 1, j], v[0, j], bc)
     value = inv_hx2 * (left - 2.0 * v[i, j] + right)
     if ny > 1:
-        down = v[i, j - 1] if j > 0 else _ghost(v[i, 0], v[i, ny - 1], bc)
-        up = v[i, j + 1] if j < ny - 1 else _ghost(v[i, ny - 1], v[i, 0], bc)
+        down = v[i, j - 1] if j > 0 else ghost(v[i, 0], v[i, ny - 1], bc)
+        up = v[i, j + 1] if j < ny - 1 else ghost(v[i, ny - 1], v[i, 0], bc)
         value += inv_hy2 * (down - 2.0 * v[i, j] + up)
     return value
 
 
 @njit(cache=True, inline="always")
-def _ghost(u_edge, u_wrap, bc):
-    # Value beyond the edge: the periodic image, zero (Dirichlet) or the mirror (Neumann).
+def ghost(u_edge, u_wrap, bc):
+    """Value beyond an edge: the periodic image, zero (Dirichlet) or the mirror (Neumann)."""
     if bc == PERIODIC:
         return u_wrap
     if bc == DIRICHLET:
         return 0.0 * u_edge
     return u_edge
 
-
-@njit(cache=True, inline="always")
-def _second_difference_x(u, b, c, i, j, nx, bc):
-    left = u[b, c, i - 1, j] if i > 0 else _ghost(u[b, c, 0, j], u[b, c, nx - 1, j], bc)
-    right = u[b, c, i + 1, j] if i < nx - 1 else _ghost(u[b, c, nx - 1, j], u[b, c, 0, j], bc)
-    return left - 2.0 * u[b, c, i, j] + right
-
-
-@njit(cache=True, inline="always")
-def _second_difference_y(u, b, c, i, j, ny, bc):
-    left = u[b, c, i, j - 1] if j > 0 else _ghost(u[b, c, i, 0], u[b, c, i, ny - 1], bc)
-    right = u[b, c, i, j + 1] if j < ny - 1 else _ghost(u[b, c, i, ny - 1], u[b, c, i, 0], bc)
-    return left - 2.0 * u[b, c, i, j] + right
