@@ -1,0 +1,144 @@
+"""Cost of one training iteration: KS correction, 33k ResNet (26 × 8), batch 16, unroll m = 4.
+
+    python benchmarks/training.py [--repeats 30] [--dtype float32]
+
+Side by side in one run:
+* WIG iteration with adjointsim's solver (hand-written adjoint through ``train.bridge``), and
+  the share of it spent in the solver's forward + adjoint;
+* the same WIG iteration with a pure-torch (torch.fft) ETD1 solver under autograd;
+* NOG and ONE iterations, for the ratio NOG / (m × ONE).
+Targets (issue 4): solver ≤ 20% of the WIG iteration; ≥ 3× faster than the torch-solver
+iteration; NOG ≤ 1.1 × m × ONE.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import adjointsim  # noqa: E402
+from adjointsim.spectral.etdrk import etdrk_coefficients  # noqa: E402
+from nets import ResNet, parameter_count  # noqa: E402
+from train import bridge  # noqa: E402
+from train.model import NeuralStepper  # noqa: E402
+from train.unroll import unrolled_loss  # noqa: E402
+
+
+class TorchETD1KS:
+    """The coarse KS solver of List et al. (ETD1, two sub-steps per frame) in torch.fft."""
+
+    def __init__(self, stepper, dtype: torch.dtype):
+        n, length = stepper.grid_shape[0], stepper.length
+        h = stepper.dt / stepper.substeps
+        k = 2 * np.pi * np.arange(n // 2 + 1) / length
+        c = etdrk_coefficients(k**2 - k**4, h, 1)
+        cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
+        self.E = torch.tensor(c["E"], dtype=cdtype)
+        self.phi1 = torch.tensor(c["phi1"], dtype=cdtype)
+        k[-1] = 0.0  # no Nyquist mode in an odd derivative
+        self.g = torch.tensor(-0.5j * k, dtype=cdtype)
+        self.n, self.substeps, self.dt = n, stepper.substeps, stepper.dt
+
+    def __call__(self, u: torch.Tensor) -> torch.Tensor:
+        v = torch.fft.rfft(u)
+        for _ in range(self.substeps):
+            v = self.E * v + self.phi1 * (self.g * torch.fft.rfft(torch.fft.irfft(v, self.n) ** 2))
+        return torch.fft.irfft(v, self.n)
+
+
+class TorchCorrection(NeuralStepper):
+    """Parallel correction with the torch solver in place of the bridge (one domain size)."""
+
+    def __init__(self, net, torch_solver):
+        super().__init__(net, "prediction")
+        self.setup, self.torch_solver = "correction", torch_solver
+
+    def forward(self, u, params, conditions):
+        return self.torch_solver(u) + self.torch_solver.dt * self._f(u, conditions)
+
+
+def iteration_time(model, frames, params, cond, mode, repeats) -> float:
+    opt = torch.optim.Adam(model.parameters(), lr=1e-5)
+    times = []
+    for i in range(repeats + 3):
+        t = time.perf_counter()
+        loss = unrolled_loss(model, frames, params, cond, mode)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if i >= 3:
+            times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    dtype = getattr(torch, args.dtype)
+    m, batch = 4, 16
+    stepper = adjointsim.get("ks1d-etdrk1").list_et_al(1.0, coarse=True)
+    rng = np.random.default_rng(0)
+    ref = adjointsim.get("ks1d-etdrk2").list_et_al(1.0)
+    u = ref.rollout(ref.random_state(rng, batch) * 0.5, 200, keep="all")[-m - 1:]
+    frames = torch.from_numpy(np.swapaxes(u, 0, 1).copy()).to(dtype)
+    params = torch.ones(batch, dtype=torch.float64)
+    cond = torch.ones(batch, dtype=dtype)
+
+    def net():
+        torch.manual_seed(0)
+        return ResNet.preset("small", 2, 1).to(dtype)
+
+    ours = NeuralStepper(net(), "correction", lambda p: stepper)
+    print(f"KS correction, N = 48, ResNet {parameter_count(ours.net):,} parameters, batch {batch}, "
+          f"m = {m}, {args.dtype}, 1 thread, median of {args.repeats}")
+    t_wig = iteration_time(ours, frames, params, cond, "WIG", args.repeats)
+
+    torch_solver = TorchETD1KS(stepper, dtype)
+
+    def solver_time(step) -> float:
+        """Forward (m single steps, as in training) and backward of the solver alone."""
+        x = frames[:, 0].clone().requires_grad_()
+        times = []
+        for i in range(args.repeats + 3):
+            t = time.perf_counter()
+            y = x
+            for _ in range(m):
+                y = step(y)
+            y.sum().backward()
+            if i >= 3:
+                times.append(time.perf_counter() - t)
+        return float(np.median(times))
+
+    t_solver = solver_time(lambda y: bridge.rollout(stepper, y, 1))
+    t_solver_torch = solver_time(torch_solver)
+    torch_model = TorchCorrection(net(), torch_solver)
+    t_torch = iteration_time(torch_model, frames, params, cond, "WIG", args.repeats)
+    t_nog = iteration_time(ours, frames, params, cond, "NOG", args.repeats)
+    t_one = iteration_time(ours, frames[:, :2].contiguous(), params, cond, "ONE", args.repeats)
+    rows = [
+        ("WIG iteration, adjointsim solver", t_wig, ""),
+        ("  solver forward + adjoint (m steps)", t_solver,
+         f"{t_solver / t_wig:.0%} of the iteration (target ≤ 20%)"),
+        ("WIG iteration, torch.fft solver + autograd", t_torch,
+         f"{t_torch / t_wig:.2f}x slower than ours (target ≥ 3x)"),
+        ("  torch.fft solver forward + autograd backward", t_solver_torch,
+         f"{t_solver_torch / t_solver:.1f}x our solver's time"),
+        ("NOG iteration", t_nog, f"{t_nog / (m * t_one):.2f} × m × ONE (target ≤ 1.1)"),
+        (f"ONE iteration (same batch {batch})", t_one, ""),
+    ]
+    print(f"| {'what':<44} | {'ms':>7} | note |\n|{'-' * 46}|{'-' * 9}|------|")
+    for name, t, note in rows:
+        print(f"| {name:<44} | {1e3 * t:7.2f} | {note} |")
+
+
+if __name__ == "__main__":
+    main()
