@@ -96,6 +96,9 @@ def check_stepper(
     def linear(traj: np.ndarray) -> Any:
         return sum(np.sum(w[k] * traj[k]) for k in subset)
 
+    def magnitude(traj: np.ndarray) -> float:
+        return float(sum(np.sum(np.abs(w[k] * traj[k])) for k in subset))
+
     def quadratic(traj: np.ndarray) -> float:
         return float(sum(np.sum(w[k] * traj[k]) + 0.5 * np.sum(traj[k] ** 2) for k in subset))
 
@@ -120,8 +123,8 @@ def check_stepper(
         grad_quad = gradient(quad_cot, which)
         x, delta = x.astype(np.float64), delta.astype(np.float64)
         adj = float(np.sum(grad_lin * delta))
-        tangent = _tangent(stepper, run, linear, x, delta, which)
-        dot_err = abs(tangent - adj) / max(abs(tangent), abs(adj), 1e-300)
+        tangent, noise = _tangent(stepper, run, linear, magnitude, x, delta, which)
+        dot_err = abs(tangent - adj) / max(abs(tangent), abs(adj), noise, 1e-300)
 
         def phi(e: float, x=x, delta=delta, which=which) -> float:
             return quadratic(run(x + e * delta, which))
@@ -143,14 +146,16 @@ def _tangent(
     stepper: Stepper,
     run: Callable[[np.ndarray, str], np.ndarray],
     linear: Callable[[np.ndarray], Any],
+    magnitude: Callable[[np.ndarray], float],
     x: np.ndarray,
     delta: np.ndarray,
     which: str,
-) -> float:
-    """Directional derivative of the linear functional: complex step, else Richardson FD."""
+) -> tuple[float, float]:
+    """Directional derivative of the linear functional and its round-off level: complex step
+    (no cancellation), else Richardson-extrapolated central differences."""
     if stepper.complex_step:
         z = x + 1j * _H_COMPLEX_STEP * delta
-        return float(np.imag(linear(run(z, which))) / _H_COMPLEX_STEP)
+        return float(np.imag(linear(run(z, which))) / _H_COMPLEX_STEP), 0.0
     h = 1e-2
 
     def central(e: float) -> float:
@@ -159,7 +164,9 @@ def _tangent(
 
     # Two Richardson levels cancel the h² and h⁴ terms: the error is O(h⁶) + round-off / h.
     d1, d2, d4 = central(h), central(h / 2), central(h / 4)
-    return (64.0 * d4 - 20.0 * d2 + d1) / 45.0
+    # Round-off of the differences: eps Σ|w_k u_k| / (h/4), amplified 64/45 by the weights.
+    noise = 64 / 45 * np.finfo(np.float64).eps * magnitude(run(x, which)) / (h / 4)
+    return (64.0 * d4 - 20.0 * d2 + d1) / 45.0, noise
 
 
 def _taylor_rate(

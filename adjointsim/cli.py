@@ -65,7 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--json", action="store_true", help="print only a JSON list of rows")
     g.set_defaults(func=_gradcheck)
+    b = sub.add_parser("bench", help="benchmarks: work-precision sweeps (error vs run time)")
+    b.add_argument("which", choices=("work-precision",))
+    b.add_argument("rest", nargs=argparse.REMAINDER, help="SCENE [--out DIR] [--quick]")
+    b.set_defaults(func=_bench)
     return parser
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from .bench.work_precision import main as work_precision
+
+    return work_precision(args.rest)
 
 
 #: commands that need torch; they live in the ``train`` package and load only when used

@@ -1,0 +1,82 @@
+"""Speed of the 2D Navier–Stokes ETDRK solvers against the exponax figures in peers.md.
+
+    NUMBA_NUM_THREADS=1 python benchmarks/ns_speed.py [--n 128] [--steps 100] [--repeats 7]
+                                                       [--orders 2] [--batch 1] [--cpu]
+
+Kolmogorov reference scene (k_f = 6, Re = 1000, Δt = 0.005·128/n, 2/3 dealiasing), float64,
+started from a developed state. Per step, median / minimum over the repeats of:
+  forward        rollout(u0, steps)
+  fwd+adj        vjp(u0, steps, ū): the forward sweep records the stage fields, the adjoint
+                 reads them (the default path)
+  fwd+adj (rec)  forward + vjp(..., trajectory=...): the adjoint recomputes the stages
+  numpy          the vectorised NumPy forward of benchmarks/numpy_ref/spectral2d.py
+``--cpu`` measures the thread's CPU time instead of wall time: other processes on a shared
+machine inflate it much less. Targets at 128², batch 1, ETDRK2: forward ≤ 0.43 ms/step and
+forward + adjoint ≤ 1.1 ms/step (exponax: 0.64 and 2.2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+from numpy_ref.spectral2d import navier_stokes as numpy_rollout  # noqa: E402
+
+import adjointsim.solvers.navier_stokes as ns  # noqa: E402
+from adjointsim import get  # noqa: E402
+
+
+def timings(fn, repeats: int, clock) -> tuple[float, float]:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t = clock()
+        fn()
+        times.append(clock() - t)
+    return float(np.median(times)), float(np.min(times))
+
+
+def measure(stepper: ns.NavierStokes2D, batch: int, steps: int, repeats: int, clock) -> list:
+    u0 = stepper.rollout(stepper.random_state(np.random.default_rng(0), batch), 200)
+    cot = np.ones_like(u0)
+    traj = stepper.rollout(u0, steps, keep="all")
+    forward = timings(lambda: stepper.rollout(u0, steps), repeats, clock)
+    taped = timings(lambda: stepper.vjp(u0, steps, cot), repeats, clock)
+    recomputed = timings(lambda: stepper.vjp(u0, steps, cot, trajectory=traj), repeats, clock)
+    reference = timings(lambda: numpy_rollout(stepper, u0, steps), max(1, repeats // 3), clock)
+    rows = [forward, taped, (forward[0] + recomputed[0], forward[1] + recomputed[1]), reference]
+    return [(1e3 * med / steps, 1e3 * low / steps) for med, low in rows]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
+    parser.add_argument("--n", type=int, default=128)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--orders", type=int, nargs="+", default=[2])
+    parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--cpu", action="store_true", help="thread CPU time instead of wall time")
+    args = parser.parse_args()
+    clock = time.thread_time if args.cpu else time.perf_counter
+    print(f"ms/step, median / min ({'CPU' if args.cpu else 'wall'} time)")
+    print(f"{'solver':<12} {'grid':>6} {'B':>3} {'forward':>15} {'fwd+adj':>15} "
+          f"{'fwd+adj (rec)':>15} {'numpy':>15}")
+    for order in args.orders:
+        cls = get(f"ns2d-etdrk{order}")
+        stepper = cls(n=args.n, nu=1e-3, dt=0.005 * 128 / args.n, forcing_wavenumber=6)
+        cells = measure(stepper, args.batch, args.steps, args.repeats, clock)
+        text = " ".join(f"{med:>7.3f} / {low:<5.3f}" for med, low in cells)
+        print(f"{stepper.name:<12} {args.n:>5}² {args.batch:>3} {text}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
