@@ -134,8 +134,9 @@ def check_stepper(
         rate = _taylor_rate(phi, phi0, slope, _EPS_TAYLOR)
         e = _EPS_FD
         fd = (phi(e) - phi(-e)) / (2 * e)
-        # Central differences cannot resolve slopes below their round-off, eps |Φ| / ε.
-        noise = np.finfo(np.float64).eps * abs(phi0) / e
+        # Central differences cannot resolve slopes below the round-off of Φ over the
+        # rollout (taken as 100 eps |Φ|) divided by ε.
+        noise = 100 * np.finfo(np.float64).eps * abs(phi0) / e
         fd_err = abs(fd - slope) / max(abs(fd), abs(slope), noise, 1e-300)
         passed = bool(dot_err <= tol["dot"] and rate >= tol["rate"] and fd_err <= tol["fd"])
         rows.append(CheckResult(stepper.name, which, dot_err, rate, fd_err, passed))
