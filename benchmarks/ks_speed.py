@@ -1,0 +1,104 @@
+"""Per-step timings of the Kuramoto–Sivashinsky ETDRK4 solver against its targets.
+
+KS with N = 128, length 64, Δt = 0.25, ETDRK4, float64, one thread (the script sets
+NUMBA_NUM_THREADS=1 before numba loads). Prints, in µs per step, medians over repeats of the
+process CPU time (everything runs in one thread; CPU time is steadier than wall time on a
+shared machine): the step's 8 real FFTs alone (numpy.fft in numba via rocket-fft, and this
+package's packed FFTs), the forward rollout at batch 1 and 64, and forward + adjoint (``vjp``)
+of a 200-step rollout. Usage: ``python benchmarks/ks_speed.py [--repeats 9]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import rocket_fft  # noqa: E402, F401
+from numba import njit  # noqa: E402
+
+from adjointsim.solvers.kuramoto_sivashinsky import KS  # noqa: E402
+from adjointsim.spectral import fft1d  # noqa: E402
+
+TARGETS = {  # µs per step
+    ("forward", 1): 8.6,
+    ("forward", 64): 107.0,
+    ("forward+adjoint", 1): 17.0,
+    ("forward+adjoint", 64): 270.0,
+}
+STEPS = 200
+
+
+@njit(cache=True)
+def _numpy_ffts(u, reps):
+    # 4 rfft + 4 irfft per step, as an ETDRK4 step needs
+    for _ in range(reps):
+        for _ in range(4):
+            x = np.fft.rfft(u)
+            u = np.fft.irfft(x, u.shape[-1])
+    return u
+
+
+@njit(cache=True)
+def _packed_ffts(z, nb, fplan, reps):
+    m = z.shape[0] // nb
+    x, w = np.empty((m + 1) * nb, z.dtype), np.empty((m + 1) * nb, z.dtype)
+    t, empty = np.empty_like(z), np.empty(0, z.dtype)
+    for _ in range(reps):
+        for _ in range(4):
+            fft1d.rfft_packed(z, z, 1, x, empty, empty, False, t, w, nb, fplan)
+            fft1d.irfft_packed(x, empty, z, w, nb, fplan)
+
+
+def median_time(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return float(np.median(times))
+
+
+def measure(batch: int, repeats: int) -> dict[str, float]:
+    """µs per step of each item at ``batch``."""
+    stepper = KS[4](n=128, length=64.0, dt=0.25)
+    rng = np.random.default_rng(0)
+    u0 = stepper.random_state(rng, batch)
+    cot = rng.standard_normal(u0.shape)
+    reps = 2000 if batch == 1 else 100
+    rows = np.ascontiguousarray(u0[:, 0, :])
+    packed = rng.standard_normal(64 * batch) * 0.1 + 0j
+    fplan = fft1d.plan(128)
+    return {
+        "ffts_numpy": median_time(lambda: _numpy_ffts(rows, reps), repeats) / reps,
+        "ffts_packed": median_time(lambda: _packed_ffts(packed, batch, fplan, reps), repeats)
+        / reps,
+        "forward": median_time(lambda: stepper.rollout(u0, STEPS), repeats) / STEPS,
+        "forward+adjoint": median_time(lambda: stepper.vjp(u0, STEPS, cot), repeats) / STEPS,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=9)
+    args = parser.parse_args()
+    print(f"KS ETDRK4, N = 128, L = 64, dt = 0.25, float64, "
+          f"NUMBA_NUM_THREADS={os.environ['NUMBA_NUM_THREADS']}; µs per step (median CPU time)")
+    for batch in (1, 64):
+        t = {k: 1e6 * v for k, v in measure(batch, args.repeats).items()}
+        adjoint = t["forward+adjoint"] - t["forward"]
+        print(
+            f"batch {batch:3d}: 8 FFTs numpy.fft {t['ffts_numpy']:7.2f}, packed "
+            f"{t['ffts_packed']:7.2f} | forward {t['forward']:7.2f} "
+            f"(target {TARGETS['forward', batch]}) | forward+adjoint {t['forward+adjoint']:7.2f} "
+            f"(target {TARGETS['forward+adjoint', batch]}) | adjoint/forward "
+            f"{adjoint / t['forward']:.2f} (target 2)"
+        )
+
+
+if __name__ == "__main__":
+    main()
