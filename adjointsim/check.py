@@ -34,7 +34,7 @@ TOLERANCES: dict[str, dict[str, float]] = {
 }
 _H_COMPLEX_STEP = 1e-100
 _EPS_TAYLOR = 1e-3
-_EPS_FD = 1e-6
+_EPS_FD = 1e-5
 
 
 @dataclass(frozen=True)
@@ -99,6 +99,9 @@ def check_stepper(
     def magnitude(traj: np.ndarray) -> float:
         return float(sum(np.sum(np.abs(w[k] * traj[k])) for k in subset))
 
+    def quadratic_magnitude(traj: np.ndarray) -> float:
+        return magnitude(traj) + float(sum(0.5 * np.sum(traj[k] ** 2) for k in subset))
+
     def quadratic(traj: np.ndarray) -> float:
         return float(sum(np.sum(w[k] * traj[k]) + 0.5 * np.sum(traj[k] ** 2) for k in subset))
 
@@ -134,9 +137,9 @@ def check_stepper(
         rate = _taylor_rate(phi, phi0, slope, _EPS_TAYLOR)
         e = _EPS_FD
         fd = (phi(e) - phi(-e)) / (2 * e)
-        # Central differences cannot resolve slopes below the round-off of Φ over the
-        # rollout (taken as 100 eps |Φ|) divided by ε.
-        noise = 100 * np.finfo(np.float64).eps * abs(phi0) / e
+        # Central differences cannot resolve slopes below the round-off of Φ, taken as
+        # 100 eps Σ|terms of Φ|, divided by ε.
+        noise = 100 * np.finfo(np.float64).eps * quadratic_magnitude(base) / e
         fd_err = abs(fd - slope) / max(abs(fd), abs(slope), noise, 1e-300)
         passed = bool(dot_err <= tol["dot"] and rate >= tol["rate"] and fd_err <= tol["fd"])
         rows.append(CheckResult(stepper.name, which, dot_err, rate, fd_err, passed))

@@ -449,6 +449,7 @@ class _AdjointSweep:
             ring = self.stepper._run(u, a - a0, self._controls(self.ctrl, a0, a), self.p, False)
             u = ring[(a - a0) % 2].copy()
             starts.append(u)
+        del ring, u  # only the stored starts may stay alive while the pieces are reversed
         for i in range(k - 1, -1, -1):
             # Pieces already reversed have released their start states.
             self.reverse(starts.pop(), bounds[i], bounds[i + 1], budget - i)

@@ -75,7 +75,7 @@ class KuramotoSivashinskyETDRK(ETDRKScene1D):
         """Kassam & Trefethen's KS: N = 128 on [0, 32π), ETDRK4 with h = 1/4."""
         return KS[4](n=128, length=32 * np.pi, dt=0.25)
 
-    def kassam_trefethen_state(self, dtype=np.float64) -> np.ndarray:
+    def kassam_trefethen_state(self, dtype: np.dtype | type = np.float64) -> np.ndarray:
         """u0 = cos(x/16)(1 + sin(x/16)) on this grid, shape (1, 1, n)."""
         x = self.nodes()
         return (np.cos(x / 16) * (1 + np.sin(x / 16)))[None, None, :].astype(dtype)
