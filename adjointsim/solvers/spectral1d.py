@@ -415,15 +415,17 @@ class ETDRKScene1D(Stepper):
     ) -> np.ndarray:
         """Smooth random fields: modes up to |k| ≤ 6·2π/length with decaying amplitudes, zero
         mean, scaled to max |u| = ``amplitude``."""
+        return self._smooth(rng, batch, self.amplitude)[:, None, :].astype(dtype)
+
+    def _smooth(self, rng: np.random.Generator, count: int, amplitude: float) -> np.ndarray:
         n = self.grid_shape[0]
-        spec = np.zeros((batch, n // 2 + 1), dtype=np.complex128)
+        spec = np.zeros((count, n // 2 + 1), dtype=np.complex128)
         kmax = min(6, n // 2 - 1)
         spec[:, 1 : kmax + 1] = (
-            rng.standard_normal((batch, kmax)) + 1j * rng.standard_normal((batch, kmax))
+            rng.standard_normal((count, kmax)) + 1j * rng.standard_normal((count, kmax))
         ) / np.arange(1, kmax + 1)
         u = np.fft.irfft(spec, n)
-        u *= self.amplitude / np.abs(u).max(axis=1, keepdims=True)
-        return u[:, None, :].astype(dtype)
+        return u * (amplitude / np.abs(u).max(axis=1, keepdims=True))
 
     # ------------------------------------------------------------ kernels
     def _build_tableau(self) -> tuple:
