@@ -23,6 +23,7 @@ from ..spectral.fft2d import (
     derivative_wavenumbers,
     hermitian_weights,
     irfft2,
+    physical_with_control,
     random_smooth_field,
     rfft2,
     spectrum_zeros,
@@ -33,20 +34,13 @@ from ..stepper import Choice, Range, Stepper
 
 @njit(cache=True)
 def advdiff_forward(states, n, ctrl, dt, e):
-    nslot, nbatch, size = states.shape[0], states.shape[1], states.shape[-1]
+    nslot, nbatch = states.shape[0], states.shape[1]
     v = spectrum_zeros(e.shape, states)
     for bi in range(nbatch):
         rfft2(states[0, bi, 0], v)
         for k in range(n):
             v *= e
-            out = states[(k + 1) % nslot, bi, 0]
-            irfft2(v, out)
-            if ctrl.shape[0] > 0:
-                c = ctrl[k, bi, 0]
-                for p in range(size):
-                    for q in range(size):
-                        out[p, q] += dt * c[p, q]
-                rfft2(out, v)
+            physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt)
 
 
 @njit(cache=True)

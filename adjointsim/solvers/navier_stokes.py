@@ -39,6 +39,7 @@ from ..spectral.fft2d import (
     hermitian_weights,
     irfft2,
     irfft2_lowpass,
+    physical_with_control,
     random_smooth_field,
     rfft2,
     rfft2_lowpass,
@@ -90,14 +91,7 @@ def ns_forward(
                     v[p, q] *= a[s, p, q]
             for j in range(s):
                 _add_product(b[s, j], nh[j], v, keep, ncols)
-            out = states[(k + 1) % nslot, bi, 0]
-            irfft2(v, out)
-            if ctrl.shape[0] > 0:
-                c = ctrl[k, bi, 0]
-                for p in range(size):
-                    for q in range(size):
-                        out[p, q] += dt * c[p, q]
-                rfft2(out, v)
+            physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt)
 
 
 @njit(cache=True)

@@ -255,3 +255,16 @@ def resample_adjoint(y_bar: np.ndarray, n: int) -> np.ndarray:
 @njit(cache=True)
 def _irfft2_scaled(xh, out, fct):
     lowlevel.c2r(xh, out, _last_two(xh), False, fct, 1)
+
+
+@njit(cache=True)
+def physical_with_control(v, out, ctrl, k, b, dt):
+    """out = irfft2(v) + Δt ctrl[k, b, 0], and v = rfft2(out) again when a control was added:
+    the end of a controlled spectral step, shared by the 2D spectral steppers."""
+    irfft2(v, out)
+    if ctrl.shape[0] > 0:
+        c = ctrl[k, b, 0]
+        for p in range(out.shape[0]):
+            for q in range(out.shape[1]):
+                out[p, q] += dt * c[p, q]
+        rfft2(out, v)
