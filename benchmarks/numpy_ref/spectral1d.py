@@ -9,6 +9,8 @@ import numpy as np
 
 from adjointsim.spectral.etdrk import etdrk_coefficients
 
+from .etdrk_step import etdrk_step
+
 
 def rollout(stepper, u0: np.ndarray, n: int) -> np.ndarray:
     npts = stepper.grid_shape[0]
@@ -26,24 +28,7 @@ def rollout(stepper, u0: np.ndarray, n: int) -> np.ndarray:
 
     v = np.fft.rfft(u0)
     for _ in range(n * stepper.substeps):
-        nv = nonlinear(v)
-        if stepper.order == 1:
-            v = c["E"] * v + c["phi1"] * nv
-        elif stepper.order == 2:
-            a = c["E"] * v + c["phi1"] * nv
-            v = a + c["phi2"] * (nonlinear(a) - nv)
-        elif stepper.order == 3:
-            a = c["E2"] * v + c["Q"] * nv
-            na = nonlinear(a)
-            b = c["E"] * v + c["phi1"] * (2 * na - nv)
-            v = c["E"] * v + c["f1"] * nv + 4 * c["f2"] * na + c["f3"] * nonlinear(b)
-        else:
-            a = c["E2"] * v + c["Q"] * nv
-            na = nonlinear(a)
-            b = c["E2"] * v + c["Q"] * na
-            nb = nonlinear(b)
-            cc = c["E2"] * a + c["Q"] * (2 * nb - nv)
-            v = c["E"] * v + c["f1"] * nv + 2 * c["f2"] * (na + nb) + c["f3"] * nonlinear(cc)
+        v = etdrk_step(v, c, stepper.order, nonlinear)
     return np.fft.irfft(v, npts).astype(u0.dtype)
 
 

@@ -8,6 +8,8 @@ import numpy as np
 from adjointsim.spectral.etdrk import etdrk_coefficients
 from adjointsim.spectral.fft2d import dealias_multiplier, derivative_wavenumbers, wavenumbers
 
+from .etdrk_step import etdrk_step
+
 
 def _ns_nonlinear(stepper):
     n = stepper.n
@@ -39,24 +41,7 @@ def navier_stokes(stepper, u0: np.ndarray, n: int) -> np.ndarray:
     N, c = _ns_nonlinear(stepper)
     v = np.fft.rfft2(u0[:, 0])
     for _ in range(n):
-        nv = N(v)
-        if stepper.order == 1:
-            v = c["E"] * v + c["phi1"] * nv
-        elif stepper.order == 2:
-            a = c["E"] * v + c["phi1"] * nv
-            v = a + c["phi2"] * (N(a) - nv)
-        elif stepper.order == 3:
-            a = c["E2"] * v + c["Q"] * nv
-            na = N(a)
-            b = c["E"] * v + c["phi1"] * (2 * na - nv)
-            v = c["E"] * v + c["f1"] * nv + 4 * c["f2"] * na + c["f3"] * N(b)
-        else:
-            a = c["E2"] * v + c["Q"] * nv
-            na = N(a)
-            b = c["E2"] * v + c["Q"] * na
-            nb = N(b)
-            cc = c["E2"] * a + c["Q"] * (2 * nb - nv)
-            v = c["E"] * v + c["f1"] * nv + 2 * c["f2"] * (na + nb) + c["f3"] * N(cc)
+        v = etdrk_step(v, c, stepper.order, N)
         u = np.fft.irfft2(v, s=stepper.grid_shape)
     return u[:, None].astype(u0.dtype) if n else u0.copy()
 
