@@ -60,7 +60,7 @@ def _data(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from .trainer import TrainConfig, describe, train
+    from .trainer import TrainConfig, build_model, describe, train
 
     overrides = {k: v for k, v in vars(args).items() if k not in ("config", "resume", "func",
                                                                   "command")}
@@ -68,8 +68,9 @@ def _train(args: argparse.Namespace) -> int:
         stages = (s.split(":") for s in overrides["curriculum"].split(","))
         overrides["curriculum"] = [[int(m), float(lr)] for m, lr in stages]
     cfg = TrainConfig.load(args.config, **overrides)
-    model = train(cfg, resume=args.resume)
-    print(f"{describe(model)}; run in {cfg.out}")
+    print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
+    train(cfg, resume=args.resume)
+    print(f"run in {cfg.out}")
     return 0
 
 
