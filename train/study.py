@@ -14,7 +14,7 @@ import numpy as np
 
 from . import data as datamod
 from .evaluate import evaluate
-from .trainer import DTYPES, TrainConfig, build_model, load_checkpoint, train
+from .trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 
 #: per problem: the grid, the evaluation horizon and the training settings per study size
 STUDIES = {
@@ -74,6 +74,7 @@ def run_study(
                     seed=seed, **size["train"],
                 )
                 model = train(cfg, resume=True, progress=progress)
+                print(f"{setup}/{mode}/seed {seed}: {describe(model)}", flush=True)
                 metrics = evaluate(model, dataset, spec["horizon"], DTYPES[cfg.dtype], run)
                 row = {"problem": problem, "setup": setup, "mode": mode, "seed": seed, **metrics}
                 result_path.write_text(json.dumps(row, indent=2))
