@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from adjointsim.spectral.etdrk import etdrk_coefficients
+from adjointsim.spectral.etdrk import etdrk_coefficients, reference_step
 
 
 class TorchKS:
@@ -45,14 +45,7 @@ class TorchKS:
         return self.g * torch.fft.rfft(torch.fft.irfft(v, self.n) ** 2)
 
     def step_spectral(self, v: torch.Tensor) -> torch.Tensor:
-        c, nl = self.coef, self.nonlinear
-        nv = nl(v)
-        a = c["E2"] * v + c["Q"] * nv
-        na = nl(a)
-        b = c["E2"] * v + c["Q"] * na
-        nb = nl(b)
-        cc = c["E2"] * a + c["Q"] * (2 * nb - nv)
-        return c["E"] * v + c["f1"] * nv + 2 * c["f2"] * (na + nb) + c["f3"] * nl(cc)
+        return reference_step(v, self.coef, 4, self.nonlinear)
 
     def step(self, u: torch.Tensor) -> torch.Tensor:
         return torch.fft.irfft(self.step_spectral(torch.fft.rfft(u)), self.n)

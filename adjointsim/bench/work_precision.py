@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from ..registry import get
 from ..spectral import fft1d, fft2d
-from ..spectral.etdrk import etdrk_coefficients
+from ..spectral.etdrk import etdrk_coefficients, reference_step
 from ..stepper import Stepper
 
 #: XLA's option for single-threaded CPU kernels; it takes effect only if jax is not imported yet
@@ -172,13 +172,7 @@ class NumpyETDRK4:
         c, nl = self.c, self._nonlinear
         v = np.fft.rfftn(u0, axes=axes)
         for _ in range(n * self.substeps):
-            nv = nl(v)
-            a = c["E2"] * v + c["Q"] * nv
-            na = nl(a)
-            b = c["E2"] * v + c["Q"] * na
-            nb = nl(b)
-            cc = c["E2"] * a + c["Q"] * (2 * nb - nv)
-            v = c["E"] * v + c["f1"] * nv + 2 * c["f2"] * (na + nb) + c["f3"] * nl(cc)
+            v = reference_step(v, c, 4, nl)
         return np.fft.irfftn(v, s=self.shape, axes=axes)
 
 

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -126,3 +127,25 @@ def _compute(deriv: bool, lin: np.ndarray, h: float, order: int, points: int) ->
             c = h * np.mean(_FORMULAS[name](zr), axis=-1)
         out[name] = np.ascontiguousarray(c.real if real else c)
     return out
+
+
+def reference_step(v: Any, c: dict, order: int, N: Callable[[Any], Any]) -> Any:  # noqa: N803
+    """One ETDRK step on a spectral state, array-library agnostic (NumPy, torch, JAX): the
+    update table above written out plainly, for reference implementations and benchmarks."""
+    nv = N(v)
+    if order == 1:
+        return c["E"] * v + c["phi1"] * nv
+    if order == 2:
+        a = c["E"] * v + c["phi1"] * nv
+        return a + c["phi2"] * (N(a) - nv)
+    if order == 3:
+        a = c["E2"] * v + c["Q"] * nv
+        na = N(a)
+        b = c["E"] * v + c["phi1"] * (2 * na - nv)
+        return c["E"] * v + c["f1"] * nv + 4 * c["f2"] * na + c["f3"] * N(b)
+    a = c["E2"] * v + c["Q"] * nv
+    na = N(a)
+    b = c["E2"] * v + c["Q"] * na
+    nb = N(b)
+    cc = c["E2"] * a + c["Q"] * (2 * nb - nv)
+    return c["E"] * v + c["f1"] * nv + 2 * c["f2"] * (na + nb) + c["f3"] * N(cc)

@@ -5,10 +5,8 @@ carry the spectrum from step to step and produce every physical state u_k = irff
 
 import numpy as np
 
-from adjointsim.spectral.etdrk import etdrk_coefficients
+from adjointsim.spectral.etdrk import etdrk_coefficients, reference_step
 from adjointsim.spectral.fft2d import dealias_multiplier, derivative_wavenumbers, wavenumbers
-
-from .etdrk_step import etdrk_step
 
 
 def _ns_nonlinear(stepper):
@@ -41,7 +39,7 @@ def navier_stokes(stepper, u0: np.ndarray, n: int) -> np.ndarray:
     N, c = _ns_nonlinear(stepper)
     v = np.fft.rfft2(u0[:, 0])
     for _ in range(n):
-        v = etdrk_step(v, c, stepper.order, N)
+        v = reference_step(v, c, stepper.order, N)
         u = np.fft.irfft2(v, s=stepper.grid_shape)
     return u[:, None].astype(u0.dtype) if n else u0.copy()
 
