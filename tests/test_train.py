@@ -185,3 +185,23 @@ def test_dataset_metadata_and_splits(tiny):
     assert set(ds.splits) == {"train", "interpolation", "extrapolation"}
     assert sorted(set(ds.splits["train"].params)) == list(problem.train_params)
     assert ds.splits["train"].trajectories.dtype == np.float32
+
+
+def test_evaluation_rollout_keeps_going_when_one_trajectory_blows_up():
+    from types import SimpleNamespace
+
+    from train.evaluate import rollout
+
+    class Growth(torch.nn.Module):
+        """Row i is multiplied by its parameter each step."""
+
+        def forward(self, u, params, conditions):
+            return u * params.to(u.dtype)[:, None, None]
+
+    traj = np.ones((3, 30, 1, 8), np.float32)
+    split = SimpleNamespace(trajectories=traj, params=np.array([1.0, 10.0, 0.5]),
+                            conditions=np.zeros(3))
+    out = rollout(Growth(), split, 29, torch.float32)
+    assert np.all(out[0] == 1.0) and np.allclose(out[2, 5], 0.5**5)
+    # Row 1 passes 100× the reference's largest value at step 3: inf from there on.
+    assert np.allclose(out[1, 2], 100.0) and np.all(np.isinf(out[1, 3:]))

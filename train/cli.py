@@ -39,6 +39,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     e.add_argument("run", type=Path, help="a training run directory")
     e.add_argument("--data", type=Path, default=None, help="default: the run's dataset")
     e.add_argument("--horizon", type=int, default=None, help="12 for KS, 50 for Kolmogorov")
+    e.add_argument("--long-steps", type=int, default=500,
+                   help="length of the rollouts behind correlation time and stability")
     e.set_defaults(func=_eval)
 
     s = sub.add_parser("study", help=COMMANDS["study"])
@@ -83,7 +85,7 @@ def _eval(args: argparse.Namespace) -> int:
     model, cfg = load_model(args.run)
     horizon = args.horizon or STUDIES[cfg.problem]["horizon"]
     metrics = evaluate(model, data.load(args.data or cfg.data), horizon, DTYPES[cfg.dtype],
-                       args.run)
+                       args.run, args.long_steps)
     print(json.dumps(metrics, indent=2))
     return 0
 
