@@ -39,6 +39,25 @@ def test_torch_gradcheck_every_solver(name):
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
+def test_grouped_rollout_is_one_node_with_each_rows_own_scene():
+    ks = adjointsim.get("ks1d-etdrk1")
+    small, large = ks.list_et_al(0.9, coarse=True), ks.list_et_al(1.3, coarse=True)
+    rng = np.random.default_rng(1)
+    u0 = torch.from_numpy(small.random_state(rng, 5)).requires_grad_()
+    groups = [(small, np.array([0, 3])), (large, np.array([1, 2, 4]))]
+
+    def f(u):
+        return bridge.rollout_grouped(groups, u, 2)
+
+    assert torch.autograd.gradcheck(f, (u0,), eps=1e-6, atol=1e-6, rtol=1e-4)
+    out = f(u0)
+    torch.testing.assert_close(out[[0, 3]], bridge.rollout(small, u0[[0, 3]].detach(), 2))
+    torch.testing.assert_close(out[[1, 2, 4]], bridge.rollout(large, u0[[1, 2, 4]].detach(), 2))
+    before = bridge.ADJOINT_CALLS["count"]
+    out.square().sum().backward()
+    assert bridge.ADJOINT_CALLS["count"] == before + 1
+
+
 def test_checkpointed_backward_matches_stored():
     stepper = adjointsim.get("diffusion1d-ftcs").default()
     u0, ctrl, params = _inputs(stepper, 20)

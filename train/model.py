@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -51,17 +52,14 @@ class NeuralStepper(nn.Module):
         return self._solvers[param]
 
     def solve(self, u: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
-        """One coarse-solver step of every batch element, grouped by scene parameter."""
-        values = params.tolist()
-        unique = sorted(set(values))
+        """One coarse-solver step of every batch element, each with its scene parameter."""
+        values = params.numpy()
+        unique = np.unique(values)
         if len(unique) == 1:
-            return bridge.rollout(self.solver(unique[0]), u.contiguous(), 1)
-        parts, index = [], []
-        for p in unique:
-            idx = torch.tensor([i for i, v in enumerate(values) if v == p])
-            parts.append(bridge.rollout(self.solver(p), u[idx].contiguous(), 1))
-            index.append(idx)
-        return torch.cat(parts)[torch.argsort(torch.cat(index))]
+            groups = [(self.solver(float(unique[0])), slice(None))]
+        else:
+            groups = [(self.solver(float(p)), np.flatnonzero(values == p)) for p in unique]
+        return bridge.rollout_grouped(groups, u.contiguous(), 1)
 
     def _f(self, u: torch.Tensor, conditions: torch.Tensor) -> torch.Tensor:
         shape = (u.shape[0], 1, *u.shape[2:])

@@ -26,7 +26,7 @@ STUDIES = {
             "width": 16, "blocks": 4, "unroll": 3, "epochs": 3, "stride": 4, "lr": 1e-3,
             "lr_decay_every": 400, "batch": 16}},
         "full": {"data": "full", "seeds": 3, "train": {
-            "width": 26, "blocks": 8, "unroll": 3, "epochs": 1, "stride": 8, "lr": 1e-3,
+            "width": 26, "blocks": 8, "unroll": 3, "epochs": 2, "stride": 8, "lr": 1e-3,
             "lr_decay_every": 1000, "batch": 16}},
     },
     "kolmogorov": {
@@ -37,8 +37,8 @@ STUDIES = {
             "width": 16, "blocks": 4, "curriculum": [[1, 1e-3], [2, 1e-4], [4, 1e-5]],
             "epochs": 2, "stride": 2, "batch": 8, "correction": "sequential"}},
         "full": {"data": "full", "seeds": 2, "train": {
-            "width": 32, "blocks": 6, "curriculum": [[1, 1e-4], [2, 1e-5], [4, 1e-6]],
-            "epochs": 2, "stride": 2, "batch": 16, "correction": "sequential"}},
+            "width": 32, "blocks": 6, "curriculum": [[1, 1e-3], [2, 1e-4], [4, 1e-5]],
+            "epochs": 2, "stride": 4, "batch": 16, "correction": "sequential"}},
     },
 }
 
