@@ -205,3 +205,29 @@ def test_evaluation_rollout_keeps_going_when_one_trajectory_blows_up():
     assert np.all(out[0] == 1.0) and np.allclose(out[2, 5], 0.5**5)
     # Row 1 passes 100× the reference's largest value at step 3: inf from there on.
     assert np.allclose(out[1, 2], 100.0) and np.all(np.isinf(out[1, 3:]))
+
+
+def test_tiny_study_end_to_end_and_resumes(tmp_path):
+    import json
+
+    from train.cli import main
+    from train.study import run_study
+
+    out = tmp_path / "study"
+    rows = run_study("ks", out, "tiny", progress=False)
+    assert len(rows) == 6  # 2 setups × 3 modes × 1 seed
+    for row in rows:
+        assert row["setup"] in ("prediction", "correction") and row["mode"] in ("ONE", "NOG", "WIG")
+        assert row["seed"] == 0 and np.isfinite(row["rel_error"])
+        assert (out / f"{row['setup']}-{row['mode']}-seed0" / "checkpoint.pt").exists()
+    assert (out / "study.png").stat().st_size > 0
+    table = (out / "table.txt").read_text()
+    assert "correction  WIG" in table and "coarse solver alone" in table
+    # Everything finished is reused: running it again trains nothing and gives the same rows.
+    stamp = (out / "correction-WIG-seed0" / "checkpoint.pt").stat().st_mtime_ns
+    rows_path = tmp_path / "rows.json"
+    assert main(["study", "ks", "--size", "tiny", "--out", str(out), "--json", str(rows_path)]) == 0
+    assert json.loads(rows_path.read_text()) == rows
+    assert (out / "correction-WIG-seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="unknown study size 'huge'"):
+        run_study("ks", out, "huge")

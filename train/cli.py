@@ -45,9 +45,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     s = sub.add_parser("study", help=COMMANDS["study"])
     s.add_argument("problem", choices=("ks", "kolmogorov"))
-    s.add_argument("--quick", action="store_true", help="a reduced study (minutes)")
+    s.add_argument("--quick", action="store_const", const="quick", dest="size",
+                   help="a reduced study (minutes); same as --size quick")
+    s.add_argument("--size", choices=("tiny", "quick", "full"), default="full",
+                   help="tiny: seconds, a smoke test of the whole pipeline")
     s.add_argument("--seeds", type=int, default=None)
-    s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-quick]")
+    s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-SIZE]")
     s.add_argument("--json", type=Path, default=None, help="write one object per model here")
     s.set_defaults(func=_study)
 
@@ -93,8 +96,9 @@ def _eval(args: argparse.Namespace) -> int:
 def _study(args: argparse.Namespace) -> int:
     from .study import run_study, table
 
-    out = args.out or Path("runs") / f"study-{args.problem}{'-quick' if args.quick else ''}"
-    rows = run_study(args.problem, out, quick=args.quick, seeds=args.seeds)
+    suffix = "" if args.size == "full" else f"-{args.size}"
+    out = args.out or Path("runs") / f"study-{args.problem}{suffix}"
+    rows = run_study(args.problem, out, args.size, args.seeds)
     print(table(rows))
     print(f"plot: {out / 'study.png'}; per-model results and rollout plots under {out}")
     if args.json:
