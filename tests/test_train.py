@@ -108,6 +108,76 @@ def test_bad_modes_and_setups():
         TrainConfig.load(mode="BPTT")
 
 
+def test_warmup_steps_carry_no_gradient_and_no_loss(tiny):
+    """Pushforward: w steps without tape, then the loss of m steps from the reached state."""
+    model = _model()
+    frames, params, cond = _batch(tiny, 4)
+    loss = unrolled_loss(model, frames, params, cond, "WIG", warmup=2)
+    with torch.no_grad():
+        u = model(model(frames[:, 0], params, cond), params, cond)
+    shifted = torch.cat([u[:, None], frames[:, 3:]], dim=1)
+    expected = unrolled_loss(model, shifted, params, cond, "WIG")
+    torch.testing.assert_close(loss, expected)
+    w = model.net.decode.weight
+    torch.testing.assert_close(torch.autograd.grad(loss, w)[0],
+                               torch.autograd.grad(expected, w)[0])
+
+
+def test_truncated_bptt_interpolates_between_nog_and_wig(tiny):
+    model = _model()
+    frames, params, cond = _batch(tiny, 4)
+    w = model.net.decode.weight
+
+    def grad(mode, truncate=0):
+        return torch.autograd.grad(unrolled_loss(model, frames, params, cond, mode,
+                                                 truncate=truncate), w)[0]
+
+    torch.testing.assert_close(grad("WIG", truncate=1), grad("NOG"))
+    torch.testing.assert_close(grad("WIG", truncate=4), grad("WIG"))
+    middle = grad("WIG", truncate=2)
+    assert not torch.allclose(middle, grad("WIG")) and not torch.allclose(middle, grad("NOG"))
+
+
+def test_curriculum_stages_and_one_scaling(tiny, tmp_path):
+    from train.trainer import _plan
+
+    model = train(_config(tiny, tmp_path / "c", curriculum=[[1, 1e-3], [2, 1e-4]], epochs=1),
+                  progress=False)
+    assert model is not None
+    history = load_checkpoint(tmp_path / "c" / "checkpoint.pt")["history"]
+    stages = sorted({(h["stage"], h["m"], h["lr"]) for h in history})
+    assert stages == [(0, 1, 1e-3), (1, 2, 1e-4)]
+    # ONE trains on single steps with the batch and the epochs scaled by the target m.
+    one = _plan(TrainConfig(mode="ONE", unroll=4, batch=2, epochs=1), lambda length: 100)
+    wig = _plan(TrainConfig(mode="WIG", unroll=4, batch=2, epochs=1), lambda length: 100)
+    assert (one[0]["m"], one[0]["batch"]) == (1, 8) and wig[0]["batch"] == 2
+    assert one[0]["iterations"] == 4 * one[0]["per_epoch"]
+
+
+def test_spiking_and_non_finite_updates_are_skipped(tiny, tmp_path, monkeypatch):
+    import train.trainer as trainer
+
+    # A spike factor this small skips every update once the running mean exists (20 steps).
+    cfg = _config(tiny, tmp_path / "s", spike_factor=1e-9, epochs=30, checkpoint_every=1000,
+                  max_iterations=24)
+    train(cfg, progress=False)
+    ckpt = load_checkpoint(tmp_path / "s" / "checkpoint.pt")
+    assert [h["skipped"] for h in ckpt["history"]] == [False] * 21 + [True] * 3
+    # A non-finite loss is never stepped on.
+    real = trainer.unrolled_loss
+    calls = {"n": 0}
+
+    def sometimes_nan(*args, **kw):
+        calls["n"] += 1
+        loss = real(*args, **kw)
+        return loss * float("nan") if calls["n"] == 2 else loss
+
+    monkeypatch.setattr(trainer, "unrolled_loss", sometimes_nan)
+    train(_config(tiny, tmp_path / "n", max_iterations=3), progress=False)
+    history = load_checkpoint(tmp_path / "n" / "checkpoint.pt")["history"]
+    assert [h["skipped"] for h in history] == [False, True, False]
+
+
 def _config(tiny, out, **kw):
     base = dict(data=str(tiny), out=str(out), width=4, blocks=1, unroll=2, epochs=3, batch=2,
                 checkpoint_every=3, mode="WIG", lr=1e-3)
