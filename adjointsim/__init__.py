@@ -4,11 +4,19 @@ No torch import here: the torch layer lives in the ``train`` package.
 """
 
 from .registry import all_classes, get, names, register
-from .stepper import Choice, Cotangents, NonFiniteStateError, Range, Stepper
+from .stepper import (
+    Choice,
+    Cotangents,
+    NonFiniteInputError,
+    NonFiniteStateError,
+    Range,
+    Stepper,
+)
 
 __all__ = [
     "Choice",
     "Cotangents",
+    "NonFiniteInputError",
     "NonFiniteStateError",
     "Range",
     "Stepper",

@@ -48,6 +48,10 @@ class NonFiniteStateError(FloatingPointError):
         )
 
 
+class NonFiniteInputError(ValueError):
+    """A state handed to a solver already holds NaN or Inf."""
+
+
 @dataclass(frozen=True)
 class Choice:
     """A discrete scene option, for the property-test strategies."""
@@ -274,7 +278,9 @@ class Stepper:
             )
         if not np.all(np.isfinite(u)):
             bad = np.unique(np.nonzero(~np.isfinite(u))[0]).tolist()
-            raise ValueError(f"{self.name}: {what} has non-finite values in batch element(s) {bad}")
+            raise NonFiniteInputError(
+                f"{self.name}: {what} has non-finite values in batch element(s) {bad}"
+            )
         return np.ascontiguousarray(u)
 
     def _check_controls(self, controls: np.ndarray | None, n: int, u0: np.ndarray) -> np.ndarray:

@@ -233,6 +233,49 @@ def test_corrupt_files_get_clear_errors(tiny, tmp_path):
         load_checkpoint(ckpt)
 
 
+def test_dataset_from_another_configuration_is_refused(tiny, tmp_path):
+    import shutil
+
+    import h5py
+
+    stale = tmp_path / "stale.h5"
+    shutil.copy(tiny, stale)
+    with h5py.File(stale, "a") as f:
+        f.attrs["config"] = f.attrs["config"].replace('"warmup_frames": 200', '"warmup_frames": 50')
+    with pytest.raises(ValueError, match="another configuration.*regenerate"):
+        datamod.load(stale)
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"warmup": -1}, "warmup must be ≥ 0"),
+    ({"stride": 0}, "stride must be ≥ 1"),
+    ({"checkpoint_every": 0}, "checkpoint_every must be ≥ 1"),
+    ({"curriculum": [[1, 1e-3, 5]]}, "not an \\[m, lr\\] pair"),
+    ({"curriculum": [[0, 1e-3]]}, "needs m ≥ 1"),
+])
+def test_bad_config_values_are_named(bad, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig.load(**bad)
+
+
+def test_solver_blow_up_skips_the_update_instead_of_ending_the_run(tiny, tmp_path, monkeypatch):
+    from adjointsim import NonFiniteStateError
+
+    real = NeuralStepper.solve
+    calls = {"n": 0}
+
+    def blows_up_once(self, u, params):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise NonFiniteStateError("ks1d-etdrk1", 1, 1e30)
+        return real(self, u, params)
+
+    monkeypatch.setattr(NeuralStepper, "solve", blows_up_once)
+    train(_config(tiny, tmp_path / "b", max_iterations=4), progress=False)
+    history = load_checkpoint(tmp_path / "b" / "checkpoint.pt")["history"]
+    assert [h["skipped"] for h in history] == [False, True, False, False]
+
+
 def test_dataset_write_is_atomic(tiny, tmp_path, monkeypatch):
     ds = datamod.load(tiny)
     target = tmp_path / "d.h5"

@@ -42,14 +42,18 @@ class _Rollout(torch.autograd.Function):
             raise TypeError(f"u0 has dtype {u0.dtype}; expected torch.float32 or torch.float64")
         c = _as_numpy(controls, "controls", u0.dtype)
         p = _as_numpy(params, "params", u0.dtype)
-        store = any(ctx.needs_input_grad[4:]) and checkpoint is None
+        grad = any(ctx.needs_input_grad[4:])
+        store = grad and checkpoint is None
         states = stepper.rollout(u, n, c, p, keep="all" if store or keep == "all" else "last")
         ctx.stepper, ctx.n, ctx.keep, ctx.checkpoint = stepper, n, keep, checkpoint
-        ctx.arrays = (u, c, p, states if store else None)
-        if keep == "all":
-            return torch.from_numpy(states)
-        # A copy, so that in-place edits of the output cannot corrupt the stored trajectory.
-        return torch.from_numpy(states[-1].copy() if store else states)
+        if grad:
+            # Copies, so that in-place edits of the inputs or the output after this call cannot
+            # change what the backward pass reverses (the arrays share memory with tensors).
+            u, c, p = (None if a is None else a.copy() for a in (u, c, p))
+            ctx.arrays = (u, c, p, states if store else None)
+        if store:
+            return torch.from_numpy(states.copy() if keep == "all" else states[-1].copy())
+        return torch.from_numpy(states)
 
     @staticmethod
     def backward(ctx, grad):
@@ -79,7 +83,7 @@ class _GroupedRollout(torch.autograd.Function):
         out = np.empty_like(u)
         inputs, trajectories = [], []
         for stepper, rows in groups:
-            part = np.ascontiguousarray(u[rows])
+            part = np.array(u[rows])  # a copy: the backward pass must see u0 as it was
             states = stepper.rollout(part, n, keep="all" if store else "last")
             out[rows] = states[-1] if store else states
             inputs.append(part)

@@ -9,7 +9,6 @@ an interrupted run never leaves a half-written dataset behind.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
+from .atomic import atomic_path
 from .problems import Problem, get_problem
 
 FORMAT_VERSION = 1
@@ -77,33 +77,31 @@ def generate(
     return Dataset(problem, size, seed, splits)
 
 
+def _scene_config(problem: Problem, size: str) -> dict:
+    """What the trajectories depend on beyond the seed, stored with them as metadata."""
+    return {
+        "splits": {k: list(v) for k, v in problem.splits.items()},
+        "warmup_frames": problem.warmup_frames,
+        "substeps": problem.substeps,
+        "sizes": problem.sizes[size],
+    }
+
+
 def save(dataset: Dataset, path: str | Path) -> Path:
     """Write atomically: to a temporary file beside ``path``, then rename over it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["problem"] = dataset.problem.name
-            f.attrs["size"] = dataset.size
-            f.attrs["seed"] = dataset.seed
-            f.attrs["config"] = json.dumps(
-                {
-                    "splits": {k: list(v) for k, v in dataset.problem.splits.items()},
-                    "warmup_frames": dataset.problem.warmup_frames,
-                    "substeps": dataset.problem.substeps,
-                    "sizes": dataset.problem.sizes[dataset.size],
-                }
-            )
-            for name, split in dataset.splits.items():
-                g = f.create_group(name)
-                g.create_dataset("trajectories", data=split.trajectories)
-                g.create_dataset("params", data=split.params)
-                g.create_dataset("conditions", data=split.conditions)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["problem"] = dataset.problem.name
+        f.attrs["size"] = dataset.size
+        f.attrs["seed"] = dataset.seed
+        f.attrs["config"] = json.dumps(_scene_config(dataset.problem, dataset.size))
+        for name, split in dataset.splits.items():
+            g = f.create_group(name)
+            g.create_dataset("trajectories", data=split.trajectories)
+            g.create_dataset("params", data=split.params)
+            g.create_dataset("conditions", data=split.conditions)
     return path
 
 
@@ -121,6 +119,12 @@ def load(path: str | Path) -> Dataset:
                     f"{FORMAT_VERSION}; {fix}"
                 )
             problem = get_problem(str(f.attrs["problem"]))
+            size = str(f.attrs["size"])
+            if json.loads(f.attrs["config"]) != _scene_config(problem, size):
+                raise ValueError(
+                    f"{path} was made with another configuration of the {problem.name!r} "
+                    f"problem than this version's; {fix}"
+                )
             splits = {}
             for name in problem.splits:
                 g = f[name]
@@ -131,7 +135,7 @@ def load(path: str | Path) -> Dataset:
                 if not np.all(np.isfinite(split.trajectories)):
                     raise ValueError(f"{path}: split {name!r} holds non-finite values; {fix}")
                 splits[name] = split
-            return Dataset(problem, str(f.attrs["size"]), int(f.attrs["seed"]), splits)
+            return Dataset(problem, size, int(f.attrs["seed"]), splits)
     except (OSError, KeyError) as e:
         raise ValueError(f"{path} is not a readable adjointsim dataset ({e}); {fix}") from None
 

@@ -19,12 +19,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from adjointsim import NonFiniteStateError
+from adjointsim import NonFiniteInputError, NonFiniteStateError
 
 from .data import Dataset, Split
 from .model import NeuralStepper
 
 TEST_SPLITS = ("interpolation", "extrapolation")
+#: what a solver raises when a state is or becomes non-finite (the model's rollout blew up)
+BLOW_UPS = (NonFiniteInputError, FloatingPointError)
 
 
 @torch.no_grad()
@@ -59,12 +61,12 @@ def _step_rows(model: NeuralStepper, u, params, cond) -> torch.Tensor:
     """One model step of a batch; if the solver refuses it, row by row (NaN for refused rows)."""
     try:
         return model(u, params, cond)
-    except (ValueError, FloatingPointError):
+    except BLOW_UPS:
         rows = []
         for i in range(u.shape[0]):
             try:
                 rows.append(model(u[i : i + 1], params[i : i + 1], cond[i : i + 1]))
-            except (ValueError, FloatingPointError):
+            except BLOW_UPS:
                 rows.append(torch.full_like(u[i : i + 1], float("nan")))
         return torch.cat(rows)
 

@@ -72,7 +72,9 @@ class NeuralStepper(nn.Module):
         if self.setup == "prediction":
             return self._f(u, conditions)
         if self.correction == "parallel":
-            dt = self.solver(float(params[0])).dt
-            return self.solve(u, params) + dt * self._f(u, conditions)
+            steps = {self.solver(p).dt for p in set(params.tolist())}
+            if len(steps) > 1:
+                raise ValueError(f"the parallel correction needs one Δt per batch, got {steps}")
+            return self.solve(u, params) + steps.pop() * self._f(u, conditions)
         v = self.solve(u, params)
         return v + self._f(v, conditions)

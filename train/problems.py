@@ -77,7 +77,9 @@ class KuramotoSivashinsky(Problem):
             ]
             picks = [shapes[i % len(shapes)] for i in range(count)]
         else:
-            # Random smooth states: a few random low modes of the domain.
+            # Random smooth states: cos(2πξ) (not periodic on the domain unless 8·factor is an
+            # integer, like the training states; the warm-up frames smooth the seam away) plus
+            # a few random low modes of the domain.
             picks = []
             for _ in range(count):
                 modes = np.arange(1, 5)
@@ -94,7 +96,6 @@ class Kolmogorov(Problem):
     Δt = 0.02 (one frame = four reference steps), both ETDRK4: ETDRK1/2 blow up on these grids
     once the flow reaches Courant numbers near 1. The network sees Re/1000."""
 
-    reference_n: int = 128
     coarse_n: int = 32
 
     def reference(self, param: float) -> Stepper:

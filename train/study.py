@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from . import data as datamod
+from .atomic import write_text
 from .evaluate import TEST_SPLITS, evaluate
 from .trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 
@@ -58,8 +59,8 @@ def run_study(
     if problem not in STUDIES:
         raise ValueError(f"unknown study {problem!r}; choose from {sorted(STUDIES)}")
     spec = STUDIES[problem]
-    if size not in spec:
-        sizes = [k for k in spec if isinstance(spec[k], dict)]
+    sizes = [k for k in spec if isinstance(spec[k], dict)]
+    if size not in sizes:
         raise ValueError(f"unknown study size {size!r}; choose from {sizes}")
     size = spec[size]
     out = Path(out)
@@ -84,7 +85,7 @@ def run_study(
                 print(f"{setup}/{mode}/seed {seed}: {describe(model)}", flush=True)
                 metrics = evaluate(model, dataset, spec["horizon"], DTYPES[cfg.dtype], run)
                 row = {"problem": problem, "setup": setup, "mode": mode, "seed": seed, **metrics}
-                result_path.write_text(json.dumps(row, indent=2))
+                write_text(result_path, json.dumps(row, indent=2))
                 rows.append(row)
     write_summary(rows, out, spec["horizon"])
     return rows
@@ -125,7 +126,7 @@ def table(rows: list[dict]) -> str:
 
 
 def write_summary(rows: list[dict], out: Path, horizon: int) -> None:
-    (out / "table.txt").write_text(table(rows) + "\n")
+    write_text(out / "table.txt", table(rows) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")

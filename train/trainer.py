@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import tomllib
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -25,6 +24,8 @@ from tqdm.auto import tqdm
 from nets import DilatedResNet, ResNet, UNet, parameter_count
 
 from . import data as datamod
+from .atomic import atomic_path, write_text
+from .evaluate import BLOW_UPS
 from .model import NeuralStepper
 from .problems import get_problem
 from .unroll import MODES, unrolled_loss
@@ -90,6 +91,18 @@ class TrainConfig:
             raise ValueError(f"unknown net {self.net!r}; choose from {sorted(CONV_NETS)}")
         if self.dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {sorted(DTYPES)}, not {self.dtype!r}")
+        for name in ("warmup", "truncate"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be ≥ 0, not {getattr(self, name)}")
+        for name in ("unroll", "batch", "stride", "lr_decay_every", "checkpoint_every", "threads",
+                     "width", "blocks"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be ≥ 1, not {getattr(self, name)}")
+        if self.epochs <= 0 or self.lr <= 0:
+            raise ValueError(f"epochs and lr must be > 0, not {self.epochs} and {self.lr}")
+        for stage in self.curriculum:
+            if not (isinstance(stage, list | tuple) and len(stage) == 2):
+                raise ValueError(f"curriculum stage {stage!r} is not an [m, lr] pair")
         for m, lr in self.stages():
             if m < 1 or lr <= 0:
                 raise ValueError(f"curriculum stage (m={m}, lr={lr}) needs m ≥ 1 and lr > 0")
@@ -124,12 +137,6 @@ def _plan(cfg: TrainConfig, n_windows_fn) -> list[dict]:
         plan.append({"m": horizon, "lr": lr, "batch": batch,
                      "iterations": int(math.ceil(epochs * per_epoch)), "per_epoch": per_epoch})
     return plan
-
-
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -169,12 +176,13 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         state, history = ckpt["state"], ckpt["history"]
-    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
 
     def save() -> None:
-        _atomic_save({"config": asdict(cfg), "model": model.state_dict(),
-                      "optimizer": optimizer.state_dict(), "state": state,
-                      "history": history}, ckpt_path)
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({"config": asdict(cfg), "model": model.state_dict(),
+                        "optimizer": optimizer.state_dict(), "state": state,
+                        "history": history}, tmp)
 
     total_iterations = sum(s["iterations"] for s in plan)
     bar = tqdm(total=total_iterations, initial=state["total"], desc=f"train {cfg.mode}",
@@ -201,19 +209,26 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
             lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], cfg.mode,
-                                 cfg.warmup, cfg.truncate)
             optimizer.zero_grad(set_to_none=True)
-            skipped = not torch.isfinite(loss)
+            try:
+                loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], cfg.mode,
+                                     cfg.warmup, cfg.truncate)
+                skipped = not torch.isfinite(loss)
+                if not skipped:
+                    loss.backward()
+            except BLOW_UPS:  # the coarse solver refused a state the model made
+                loss, skipped = torch.tensor(float("nan")), True
             if not skipped:
-                loss.backward()
                 norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf")))
-                spike = state["total"] > 20 and norm > cfg.spike_factor * state["grad_ema"]
+                # The running mean restarts each stage (a longer unroll has larger gradients)
+                # and also follows skipped norms, capped, so a lasting rise is let through.
+                ema, cutoff = state["grad_ema"], cfg.spike_factor * state["grad_ema"]
+                spike = it > 20 and norm > cutoff
                 skipped = not math.isfinite(norm) or spike
+                if math.isfinite(norm):
+                    state["grad_ema"] = norm if ema == 0 else 0.95 * ema + 0.05 * min(norm, cutoff)
                 if not skipped:
                     optimizer.step()
-                    state["grad_ema"] = norm if state["total"] == 0 else (
-                        0.95 * state["grad_ema"] + 0.05 * norm)
             state["skipped"] += skipped
             history.append({"iteration": state["total"], "stage": state["stage"],
                             "m": stage["m"], "lr": lr, "loss": loss.item(), "skipped": skipped})
@@ -225,6 +240,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
                 save()
         state["stage"] += 1
         state["iteration"] = 0
+        state["grad_ema"] = 0.0
     bar.close()
     save()
     _write_history(history, out)
@@ -232,7 +248,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
 
 
 def _write_history(history: list[dict], out: Path) -> None:
-    with open(out / "history.csv", "w", newline="") as f:
+    with atomic_path(out / "history.csv") as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["iteration", "stage", "m", "lr", "loss", "skipped"])
         writer.writeheader()
         writer.writerows(history)
