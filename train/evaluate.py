@@ -94,9 +94,10 @@ def relative_error(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def error_over_time(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Mean over rollouts and space of (pred − ref)² / max(ref²), per step: (steps + 1,)."""
+    """Mean over rollouts and space of (pred − ref)² / max(ref²), per step: (steps + 1,); the
+    max runs over steps 1.. of the window, as in :func:`relative_error`."""
     space = tuple(range(2, pred.ndim))
-    scale = np.max(ref**2, axis=(1, *space))[:, None]
+    scale = np.max(ref[:, 1:] ** 2, axis=(1, *space))[:, None]
     with np.errstate(over="ignore", invalid="ignore"):
         return np.mean(np.mean((pred - ref) ** 2, axis=space) / scale, axis=0)
 
