@@ -31,6 +31,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import numba
 import numpy as np
 
 FLOAT_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
@@ -276,7 +277,7 @@ class Stepper:
                 f"{self.name}: {what} has shape {u.shape}; expected (B, {dims})"
                 " = (batch, channels, *grid)"
             )
-        if not np.all(np.isfinite(u)):
+        if not _all_finite(u):
             bad = np.unique(np.nonzero(~np.isfinite(u))[0]).tolist()
             raise NonFiniteInputError(
                 f"{self.name}: {what} has non-finite values in batch element(s) {bad}"
@@ -301,7 +302,7 @@ class Stepper:
                 f"{self.name}: controls have dtype {c.dtype} but the state is {u0.dtype}; "
                 "cast them to the state's dtype"
             )
-        if not np.all(np.isfinite(c)):
+        if not _all_finite(c):
             raise ValueError(f"{self.name}: controls contain non-finite values")
         return np.ascontiguousarray(c)
 
@@ -375,7 +376,7 @@ class Stepper:
             sweep.reverse_stored(np.ascontiguousarray(trajectory[:n]), 0, n)
         else:
             sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget)
-        if not np.all(np.isfinite(ubar)):
+        if not _all_finite(ubar):
             self._raise_if_nonfinite(self._run(u0, n, ctrl, p, keep_all=False), False, u0, ctrl, p)
             raise FloatingPointError(
                 f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
@@ -391,7 +392,7 @@ class Stepper:
         self, states: np.ndarray, keep_all: bool, u0: np.ndarray, ctrl: np.ndarray, p: np.ndarray
     ) -> None:
         """Zero cost when the rollout stayed finite; otherwise find the first bad step."""
-        if np.all(np.isfinite(states[-1] if keep_all else states)):
+        if _all_finite(states[-1] if keep_all else states):
             return
         offset = 0
         if not keep_all:
@@ -401,7 +402,7 @@ class Stepper:
                 c = ctrl[offset : offset + chunk] if ctrl.shape[0] else ctrl
                 m = c.shape[0] if ctrl.shape[0] else chunk
                 states = self._run(u, m, c, p, keep_all=True)
-                if not np.all(np.isfinite(states)):
+                if not _all_finite(states):
                     break
                 u, offset = states[m], offset + m
         bad = ~np.isfinite(states).reshape(states.shape[0], -1).all(axis=1)
@@ -471,6 +472,16 @@ def _pieces(m: int, budget: int) -> int:
         if -(-m // k) + 2 <= budget - (k - 1):
             return k
     return max(2, min(budget - 2, budget // 2))
+
+
+@numba.njit(cache=True)
+def _all_finite(a: np.ndarray) -> bool:
+    # Stops at the first NaN/Inf and makes no temporary: several times faster than
+    # np.all(np.isfinite(a)) on the small states of a training step.
+    for v in a.ravel():
+        if not np.isfinite(v):
+            return False
+    return True
 
 
 def _check_steps(n: int) -> int:
