@@ -344,3 +344,5 @@ def test_tiny_study_end_to_end_and_resumes(tmp_path):
     assert (out / "correction-WIG-seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp
     with pytest.raises(ValueError, match="unknown study size 'huge'"):
         run_study("ks", out, "huge")
+    # Two worker processes train the same models: the same rows, bit for bit.
+    assert run_study("ks", tmp_path / "parallel", "tiny", progress=False, jobs=2) == rows

@@ -50,6 +50,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--size", choices=("tiny", "quick", "full"), default="full",
                    help="tiny: seconds, a smoke test of the whole pipeline")
     s.add_argument("--seeds", type=int, default=None)
+    s.add_argument("--jobs", type=int, default=1,
+                   help="models trained at once (one thread each; 2 suits a 2-core machine)")
     s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-SIZE]")
     s.add_argument("--json", type=Path, default=None, help="write one object per model here")
     s.set_defaults(func=_study)
@@ -98,7 +100,7 @@ def _study(args: argparse.Namespace) -> int:
 
     suffix = "" if args.size == "full" else f"-{args.size}"
     out = args.out or Path("runs") / f"study-{args.problem}{suffix}"
-    rows = run_study(args.problem, out, args.size, args.seeds)
+    rows = run_study(args.problem, out, args.size, args.seeds, jobs=args.jobs)
     print(table(rows))
     print(f"plot: {out / 'study.png'}; per-model results and rollout plots under {out}")
     if args.json:

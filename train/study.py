@@ -8,9 +8,12 @@ dataset, each model's checkpoint and results) is reused, so an interrupted study
 from __future__ import annotations
 
 import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from . import data as datamod
 from .atomic import write_text
@@ -54,41 +57,65 @@ def run_study(
     size: str = "full",
     seeds: int | None = None,
     progress: bool = True,
+    jobs: int = 1,
 ) -> list[dict]:
-    """Train and evaluate every cell; returns one row per trained model."""
+    """Train and evaluate every cell; returns one row per trained model.
+
+    ``jobs`` > 1 trains that many cells at once in worker processes (one torch thread each),
+    showing one progress bar over the cells instead of one per model.
+    """
     if problem not in STUDIES:
         raise ValueError(f"unknown study {problem!r}; choose from {sorted(STUDIES)}")
     spec = STUDIES[problem]
     sizes = [k for k in spec if isinstance(spec[k], dict)]
     if size not in sizes:
         raise ValueError(f"unknown study size {size!r}; choose from {sizes}")
-    size = spec[size]
+    if jobs < 1:
+        raise ValueError(f"jobs must be ≥ 1, not {jobs}")
+    settings = spec[size]
     out = Path(out)
-    data_path = out / f"{problem}-{size['data']}.h5"
+    data_path = out / f"{problem}-{settings['data']}.h5"
     if not data_path.exists():
-        datamod.save(datamod.generate(problem, size["data"], seed=0, progress=progress), data_path)
-    dataset = datamod.load(data_path)
-    rows = []
-    for setup in spec["setups"]:
-        for mode in spec["modes"]:
-            for seed in range(seeds if seeds is not None else size["seeds"]):
-                run = out / f"{setup}-{mode}-seed{seed}"
-                result_path = run / "results.json"
-                if result_path.exists():
-                    rows.append(json.loads(result_path.read_text()))
-                    continue
-                cfg = TrainConfig.load(
-                    problem=problem, data=str(data_path), out=str(run), setup=setup, mode=mode,
-                    seed=seed, **size["train"],
-                )
-                model = train(cfg, resume=True, progress=progress)
-                print(f"{setup}/{mode}/seed {seed}: {describe(model)}", flush=True)
-                metrics = evaluate(model, dataset, spec["horizon"], DTYPES[cfg.dtype], run)
-                row = {"problem": problem, "setup": setup, "mode": mode, "seed": seed, **metrics}
-                write_text(result_path, json.dumps(row, indent=2))
-                rows.append(row)
+        datamod.save(datamod.generate(problem, settings["data"], seed=0, progress=progress),
+                     data_path)
+    datamod.load(data_path)  # a damaged or stale file fails here, before any training
+    cells = [(setup, mode, seed) for setup in spec["setups"] for mode in spec["modes"]
+             for seed in range(seeds if seeds is not None else settings["seeds"])]
+    todo = [c for c in cells if not _result_path(out, *c).exists()]
+    args = [(problem, size, str(data_path), str(out), *c) for c in todo]
+    if jobs > 1 and len(todo) > 1:
+        context = multiprocessing.get_context("spawn")  # fresh torch/numba state per worker
+        with ProcessPoolExecutor(min(jobs, len(todo)), mp_context=context) as pool:
+            futures = [pool.submit(_run_cell, *a, progress=False) for a in args]
+            for future in tqdm(as_completed(futures), total=len(futures), desc="study cells",
+                               disable=not progress, unit="model"):
+                future.result()
+    else:
+        for a in args:
+            _run_cell(*a, progress=progress)
+    rows = [json.loads(_result_path(out, *c).read_text()) for c in cells]
     write_summary(rows, out, spec["horizon"])
     return rows
+
+
+def _result_path(out: Path, setup: str, mode: str, seed: int) -> Path:
+    return out / f"{setup}-{mode}-seed{seed}" / "results.json"
+
+
+def _run_cell(problem: str, size: str, data_path: str, out: str, setup: str, mode: str,
+              seed: int, progress: bool) -> None:
+    """Train (resuming if a checkpoint exists), evaluate and write one cell's results."""
+    spec = STUDIES[problem]
+    result_path = _result_path(Path(out), setup, mode, seed)
+    cfg = TrainConfig.load(problem=problem, data=data_path, out=str(result_path.parent),
+                           setup=setup, mode=mode, seed=seed, **spec[size]["train"])
+    model = train(cfg, resume=True, progress=progress)
+    if progress:
+        print(f"{setup}/{mode}/seed {seed}: {describe(model)}", flush=True)
+    metrics = evaluate(model, datamod.load(data_path), spec["horizon"], DTYPES[cfg.dtype],
+                       result_path.parent)
+    row = {"problem": problem, "setup": setup, "mode": mode, "seed": seed, **metrics}
+    write_text(result_path, json.dumps(row, indent=2))
 
 
 def load_model(run: str | Path):
