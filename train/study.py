@@ -28,14 +28,14 @@ STUDIES = {
         "horizon": 12,
         "quick": {"data": "quick", "seeds": 2, "train": {
             "width": 16, "blocks": 4, "unroll": 3, "epochs": 3, "stride": 4, "lr": 1e-3,
-            "lr_decay_every": 400, "batch": 16}},
+            "lr_decay_every": 64, "batch": 16}},
         # For tests: the whole pipeline in seconds.
         "tiny": {"data": "tiny", "seeds": 1, "train": {
             "width": 4, "blocks": 1, "unroll": 2, "epochs": 1, "stride": 4, "lr": 1e-3,
             "batch": 4}},
         "full": {"data": "full", "seeds": 3, "train": {
             "width": 26, "blocks": 8, "unroll": 3, "epochs": 2, "stride": 8, "lr": 1e-3,
-            "lr_decay_every": 1000, "batch": 16}},
+            "lr_decay_every": 128, "batch": 16}},
     },
     "kolmogorov": {
         "setups": ("correction",),
