@@ -346,3 +346,15 @@ def test_tiny_study_end_to_end_and_resumes(tmp_path):
         run_study("ks", out, "huge")
     # Two worker processes train the same models: the same rows, bit for bit.
     assert run_study("ks", tmp_path / "parallel", "tiny", progress=False, jobs=2) == rows
+
+
+@pytest.mark.parametrize("argv, size", [([], "full"), (["--quick"], "quick"),
+                                        (["--size", "tiny"], "tiny")])
+def test_study_command_sizes(argv, size):
+    import argparse
+
+    from train.cli import add_commands
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers(dest="command"))
+    assert parser.parse_args(["study", "ks", *argv]).size == size

@@ -54,7 +54,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="models trained at once (one thread each; 2 suits a 2-core machine)")
     s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-SIZE]")
     s.add_argument("--json", type=Path, default=None, help="write one object per model here")
-    s.set_defaults(func=_study)
+    s.set_defaults(func=_study, size="full")
 
 
 def _data(args: argparse.Namespace) -> int:
