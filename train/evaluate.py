@@ -27,6 +27,8 @@ from .model import NeuralStepper
 TEST_SPLITS = ("interpolation", "extrapolation")
 #: what a solver raises when a state is or becomes non-finite (the model's rollout blew up)
 BLOW_UPS = (NonFiniteInputError, FloatingPointError)
+#: steps shown in the error-over-time plots
+PLOT_STEPS = 200
 
 
 @torch.no_grad()
@@ -107,9 +109,9 @@ def correlation_time(pred: np.ndarray, ref: np.ndarray, threshold: float = 0.2) 
     s, t = pred.shape[:2]
     a = pred.reshape(s, t, -1)
     b = ref.reshape(s, t, -1)
-    a = a - a.mean(-1, keepdims=True)
-    b = b - b.mean(-1, keepdims=True)
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):  # blown-up (inf) rollouts give NaN
+        a = a - a.mean(-1, keepdims=True)
+        b = b - b.mean(-1, keepdims=True)
         corr = (a * b).sum(-1) / np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
     below = ~(corr >= threshold)  # NaN (blown-up) counts as decorrelated
     return np.where(below.any(1), below.argmax(1), t - 1).astype(float)
@@ -132,9 +134,10 @@ def evaluate(
         long = rollout(model, split, t, dtype)
         ref = split.trajectories[:, : t + 1].astype(np.float64)
         err = relative_error(long[:, : horizon + 1], ref[:, : horizon + 1])
-        base = None
+        base = coarse = None
         if model.setup == "correction":
-            base = relative_error(coarse_rollout(model, split, horizon), ref[:, : horizon + 1])
+            coarse = coarse_rollout(model, split, min(t, max(horizon, PLOT_STEPS)))
+            base = relative_error(coarse[:, : horizon + 1], ref[:, : horizon + 1])
             coarse_errors.append(base)
         ct = correlation_time(long, ref)
         bound = 5 * np.max(np.abs(ref), axis=tuple(range(1, ref.ndim)))
@@ -152,7 +155,7 @@ def evaluate(
         corr_times.append(ct)
         stable.append(ok)
         if plots is not None:
-            plot_rollout(long, ref, Path(plots) / f"rollout-{name}.png", horizon)
+            plot_rollout(long, ref, Path(plots) / f"rollout-{name}.png", horizon, coarse)
     results["rel_error"] = float(np.mean(np.concatenate(errors)))
     results["coarse_rel_error"] = (
         float(np.median(np.concatenate(coarse_errors))) if coarse_errors else None
@@ -162,16 +165,19 @@ def evaluate(
     return results
 
 
-def plot_rollout(pred: np.ndarray, ref: np.ndarray, path: Path, horizon: int) -> None:
+def plot_rollout(
+    pred: np.ndarray, ref: np.ndarray, path: Path, horizon: int, coarse: np.ndarray | None = None
+) -> None:
     """Space–time (1D) or snapshots (2D) of the first rollout against the reference, and the
-    error over time of all rollouts."""
+    error over time of all rollouts (and of the coarse solver alone, if given, until it blows
+    up)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    t = min(pred.shape[1], 4 * horizon + 1, 200)
+    t = min(pred.shape[1], 4 * horizon + 1, PLOT_STEPS)
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     if pred.ndim == 4:  # (S, T, 1, N): space–time diagrams
         lim = np.max(np.abs(ref[0, :t, 0]))
@@ -186,8 +192,17 @@ def plot_rollout(pred: np.ndarray, ref: np.ndarray, path: Path, horizon: int) ->
                                 (axes[1], pred[0, k, 0], f"model, step {k}")):
             ax.imshow(data.T, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
             ax.set(title=title)
-    curve = error_over_time(pred[:, :t], ref[:, :t])
-    axes[2].semilogy(np.arange(t), np.where(np.isfinite(curve), curve, np.nan))
+    def shown(curve: np.ndarray) -> np.ndarray:
+        # A relative error above 10 only says "blown up"; leave it out of the log axis.
+        with np.errstate(invalid="ignore"):
+            return np.where(np.isfinite(curve) & (curve < 10), curve, np.nan)
+
+    axes[2].semilogy(np.arange(t), shown(error_over_time(pred[:, :t], ref[:, :t])), label="model")
+    if coarse is not None:
+        tc = min(t, coarse.shape[1])
+        axes[2].semilogy(np.arange(tc), shown(error_over_time(coarse[:, :tc], ref[:, :tc])), "r--",
+                         label="coarse solver alone")
+        axes[2].legend()
     axes[2].axvline(horizon, color="gray", lw=0.5)
     axes[2].set(title="relative error over time", xlabel="step")
     fig.tight_layout()
