@@ -27,7 +27,7 @@ STUDIES = {
         "modes": ("ONE", "NOG", "WIG"),
         "horizon": 12,
         "quick": {"data": "quick", "seeds": 2, "train": {
-            "width": 16, "blocks": 4, "unroll": 3, "epochs": 3, "stride": 4, "lr": 1e-3,
+            "width": 16, "blocks": 4, "unroll": 3, "epochs": 3, "stride": 1, "lr": 1e-3,
             "lr_decay_every": 64, "batch": 16}},
         # For tests: the whole pipeline in seconds.
         "tiny": {"data": "tiny", "seeds": 1, "train": {
