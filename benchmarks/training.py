@@ -63,18 +63,42 @@ class TorchCorrection(NeuralStepper):
         return self.torch_solver(u) + self.torch_solver.dt * self._f(u, conditions)
 
 
-def iteration_time(model, frames, params, cond, mode, repeats) -> float:
+def training_step(model, frames, params, cond, mode):
+    """One optimiser update of ``model``, as a callable."""
     opt = torch.optim.Adam(model.parameters(), lr=1e-5)
-    times = []
-    for i in range(repeats + 3):
-        t = time.perf_counter()
+
+    def run():
         loss = unrolled_loss(model, frames, params, cond, mode)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        if i >= 3:
-            times.append(time.perf_counter() - t)
-    return float(np.median(times))
+
+    return run
+
+
+def solver_step(step, x, m):
+    """Forward (m single steps, as in training) and backward of a solver alone."""
+
+    def run():
+        y = x
+        for _ in range(m):
+            y = step(y)
+        y.sum().backward()
+
+    return run
+
+
+def interleaved_medians(runs: dict, repeats: int) -> dict:
+    """Median seconds per callable, measured round-robin so that drift on a shared machine
+    (other jobs, frequency changes) hits every candidate alike."""
+    times = {k: [] for k in runs}
+    for i in range(repeats + 3):
+        for name, run in runs.items():
+            t = time.perf_counter()
+            run()
+            if i >= 3:
+                times[name].append(time.perf_counter() - t)
+    return {k: float(np.median(v)) for k, v in times.items()}
 
 
 def main() -> None:
@@ -99,37 +123,25 @@ def main() -> None:
 
     ours = NeuralStepper(net(), "correction", lambda p: stepper)
     print(f"KS correction, N = 48, ResNet {parameter_count(ours.net):,} parameters, batch {batch}, "
-          f"m = {m}, {args.dtype}, 1 thread, median of {args.repeats}")
-    t_wig = iteration_time(ours, frames, params, cond, "WIG", args.repeats)
-
+          f"m = {m}, {args.dtype}, 1 thread, median of {args.repeats}, interleaved")
     torch_solver = TorchETD1KS(stepper, dtype)
-
-    def solver_time(step) -> float:
-        """Forward (m single steps, as in training) and backward of the solver alone."""
-        x = frames[:, 0].clone().requires_grad_()
-        times = []
-        for i in range(args.repeats + 3):
-            t = time.perf_counter()
-            y = x
-            for _ in range(m):
-                y = step(y)
-            y.sum().backward()
-            if i >= 3:
-                times.append(time.perf_counter() - t)
-        return float(np.median(times))
-
-    t_solver = solver_time(lambda y: bridge.rollout(stepper, y, 1))
-    t_solver_torch = solver_time(torch_solver)
-    torch_model = TorchCorrection(net(), torch_solver)
-    t_torch = iteration_time(torch_model, frames, params, cond, "WIG", args.repeats)
     # Training batches mix the six domain sizes: one grouped solver call per step all the same.
     sizes = torch.tensor([(0.9, 0.95, 1.0, 1.1, 1.2, 1.3)[i % 6] for i in range(batch)],
                          dtype=torch.float64)
     mixed = NeuralStepper(net(), "correction",
                           lambda p: adjointsim.get("ks1d-etdrk1").list_et_al(p, coarse=True))
-    t_mixed = iteration_time(mixed, frames, sizes, cond, "WIG", args.repeats)
-    t_nog = iteration_time(ours, frames, params, cond, "NOG", args.repeats)
-    t_one = iteration_time(ours, frames[:, :2].contiguous(), params, cond, "ONE", args.repeats)
+    x = frames[:, 0].clone().requires_grad_()
+    t = interleaved_medians({
+        "wig": training_step(ours, frames, params, cond, "WIG"),
+        "torch": training_step(TorchCorrection(net(), torch_solver), frames, params, cond, "WIG"),
+        "mixed": training_step(mixed, frames, sizes, cond, "WIG"),
+        "nog": training_step(ours, frames, params, cond, "NOG"),
+        "one": training_step(ours, frames[:, :2].contiguous(), params, cond, "ONE"),
+        "solver": solver_step(lambda y: bridge.rollout(stepper, y, 1), x, m),
+        "solver_torch": solver_step(torch_solver, x, m),
+    }, args.repeats)
+    t_wig, t_torch, t_mixed, t_nog, t_one = (t[k] for k in ("wig", "torch", "mixed", "nog", "one"))
+    t_solver, t_solver_torch = t["solver"], t["solver_torch"]
     rows = [
         ("WIG iteration, adjointsim solver", t_wig, ""),
         ("  solver forward + adjoint (m steps)", t_solver,
