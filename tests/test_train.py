@@ -196,6 +196,20 @@ def test_resume_after_interruption_gives_the_same_weights(tiny, tmp_path):
     assert (tmp_path / "b" / "training.png").exists()
 
 
+def test_evaluating_an_unfinished_run_warns(tiny, tmp_path):
+    from train.study import load_model
+
+    train(_config(tiny, tmp_path / "cut", max_iterations=2), progress=False)
+    with pytest.warns(UserWarning, match="unfinished run.*--resume"):
+        load_model(tmp_path / "cut")
+    train(_config(tiny, tmp_path / "cut"), resume=True, progress=False)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_model(tmp_path / "cut")
+
+
 def test_killed_run_resumes_to_the_uninterrupted_weights(tiny, tmp_path):
     args = ["--data", str(tiny), "--width", "4", "--blocks", "1", "--unroll", "2", "--epochs",
             "6", "--batch", "2", "--checkpoint-every", "2", "--mode", "NOG"]

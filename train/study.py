@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -121,6 +122,13 @@ def _run_cell(problem: str, size: str, data_path: str, out: str, setup: str, mod
 def load_model(run: str | Path):
     """Rebuild a trained model from its run directory."""
     ckpt = load_checkpoint(Path(run) / "checkpoint.pt")
+    if not ckpt["state"].get("finished"):
+        warnings.warn(
+            f"{run} holds an unfinished run (stopped after {ckpt['state']['total']} iterations); "
+            "finish it by running its `adjointsim train` command again with --resume, or expect "
+            "a partly trained model",
+            stacklevel=2,
+        )
     model = build_model(TrainConfig(**ckpt["config"]))
     model.load_state_dict(ckpt["model"])
     return model, TrainConfig(**ckpt["config"])

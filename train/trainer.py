@@ -242,6 +242,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
         state["iteration"] = 0
         state["grad_ema"] = 0.0
     bar.close()
+    state["finished"] = True
     save()
     _write_history(history, out)
     return model
