@@ -278,11 +278,11 @@ def test_solver_blow_up_skips_the_update_instead_of_ending_the_run(tiny, tmp_pat
     real = NeuralStepper.solve
     calls = {"n": 0}
 
-    def blows_up_once(self, u, params):
+    def blows_up_once(self, u, params, groups=None):
         calls["n"] += 1
         if calls["n"] == 3:
             raise NonFiniteStateError("ks1d-etdrk1", 1, 1e30)
-        return real(self, u, params)
+        return real(self, u, params, groups)
 
     monkeypatch.setattr(NeuralStepper, "solve", blows_up_once)
     train(_config(tiny, tmp_path / "b", max_iterations=4), progress=False)

@@ -90,7 +90,6 @@ def _scene_config(problem: Problem, size: str) -> dict:
 def save(dataset: Dataset, path: str | Path) -> Path:
     """Write atomically: to a temporary file beside ``path``, then rename over it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["problem"] = dataset.problem.name

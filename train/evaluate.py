@@ -136,7 +136,9 @@ def evaluate(
         err = relative_error(long[:, : horizon + 1], ref[:, : horizon + 1])
         base = coarse = None
         if model.setup == "correction":
-            coarse = coarse_rollout(model, split, min(t, max(horizon, PLOT_STEPS)))
+            # Beyond the horizon only for the plot of its error over time.
+            steps = min(t, max(horizon, PLOT_STEPS)) if plots is not None else horizon
+            coarse = coarse_rollout(model, split, steps)
             base = relative_error(coarse[:, : horizon + 1], ref[:, : horizon + 1])
             coarse_errors.append(base)
         ct = correlation_time(long, ref)

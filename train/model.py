@@ -51,15 +51,17 @@ class NeuralStepper(nn.Module):
             self._solvers[param] = self._make_solver(param)
         return self._solvers[param]
 
-    def solve(self, u: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
-        """One coarse-solver step of every batch element, each with its scene parameter."""
+    def groups(self, params: torch.Tensor) -> list[tuple[Stepper, np.ndarray | slice]]:
+        """The coarse solver of each scene parameter in the batch, with the rows it advances."""
         values = params.numpy()
         unique = np.unique(values)
         if len(unique) == 1:
-            groups = [(self.solver(float(unique[0])), slice(None))]
-        else:
-            groups = [(self.solver(float(p)), np.flatnonzero(values == p)) for p in unique]
-        return bridge.rollout_grouped(groups, u.contiguous(), 1)
+            return [(self.solver(float(unique[0])), slice(None))]
+        return [(self.solver(float(p)), np.flatnonzero(values == p)) for p in unique]
+
+    def solve(self, u: torch.Tensor, params: torch.Tensor, groups=None) -> torch.Tensor:
+        """One coarse-solver step of every batch element, each with its scene parameter."""
+        return bridge.rollout_grouped(groups or self.groups(params), u.contiguous(), 1)
 
     def _f(self, u: torch.Tensor, conditions: torch.Tensor) -> torch.Tensor:
         shape = (u.shape[0], 1, *u.shape[2:])
@@ -72,9 +74,10 @@ class NeuralStepper(nn.Module):
         if self.setup == "prediction":
             return self._f(u, conditions)
         if self.correction == "parallel":
-            steps = {self.solver(p).dt for p in set(params.tolist())}
+            groups = self.groups(params)
+            steps = {stepper.dt for stepper, _ in groups}
             if len(steps) > 1:
                 raise ValueError(f"the parallel correction needs one Δt per batch, got {steps}")
-            return self.solve(u, params) + steps.pop() * self._f(u, conditions)
+            return self.solve(u, params, groups) + steps.pop() * self._f(u, conditions)
         v = self.solve(u, params)
         return v + self._f(v, conditions)
