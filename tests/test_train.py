@@ -104,7 +104,7 @@ def test_bad_modes_and_setups():
         NeuralStepper(torch.nn.Identity(), "projection")
     with pytest.raises(ValueError, match="unknown config option"):
         TrainConfig.load(modee="WIG")
-    with pytest.raises(ValueError, match="unknown mode"):
+    with pytest.raises(ValueError, match="config key 'mode': 'BPTT' is not one of ONE, NOG"):
         TrainConfig.load(mode="BPTT")
 
 
@@ -157,15 +157,21 @@ def test_curriculum_stages_and_one_scaling(tiny, tmp_path):
 def test_spiking_and_non_finite_updates_are_skipped(tiny, tmp_path, monkeypatch):
     import train.trainer as trainer
 
-    # A spike factor this small skips every update once the running mean exists (20 steps).
-    cfg = _config(tiny, tmp_path / "s", spike_factor=1e-9, epochs=30, checkpoint_every=1000,
-                  max_iterations=24)
+    # Gradients 10⁶× larger than before are skipped once the running mean exists (20 steps).
+    real = trainer.unrolled_loss
+    calls = {"n": 0}
+
+    def spikes_late(*args, **kw):
+        calls["n"] += 1
+        return real(*args, **kw) * (1e6 if calls["n"] > 21 else 1)
+
+    monkeypatch.setattr(trainer, "unrolled_loss", spikes_late)
+    cfg = _config(tiny, tmp_path / "s", epochs=30, checkpoint_every=1000, max_iterations=24)
     train(cfg, progress=False)
     ckpt = load_checkpoint(tmp_path / "s" / "checkpoint.pt")
     assert [h["skipped"] for h in ckpt["history"]] == [False] * 21 + [True] * 3
     # A non-finite loss is never stepped on.
-    real = trainer.unrolled_loss
-    calls = {"n": 0}
+    calls["n"] = 0
 
     def sometimes_nan(*args, **kw):
         calls["n"] += 1
@@ -197,7 +203,7 @@ def test_resume_after_interruption_gives_the_same_weights(tiny, tmp_path):
 
 
 def test_evaluating_an_unfinished_run_warns(tiny, tmp_path):
-    from train.study import load_model
+    from train.studies.list_et_al import load_model
 
     train(_config(tiny, tmp_path / "cut", max_iterations=2), progress=False)
     with pytest.warns(UserWarning, match="unfinished run.*--resume"):
@@ -247,6 +253,75 @@ def test_corrupt_files_get_clear_errors(tiny, tmp_path):
         load_checkpoint(ckpt)
 
 
+def _flip_bit(path, offset, bit):
+    with open(path, "r+b") as f:
+        f.seek(offset)
+        byte = f.read(1)[0]
+        f.seek(offset)
+        f.write(bytes([byte ^ (1 << bit)]))
+
+
+def test_a_flipped_bit_in_a_dataset_is_detected(tiny, tmp_path):
+    """Defect 10: one flipped exponent bit (|u| 3.35 → 4.6e19) used to load without complaint."""
+    import shutil
+
+    import h5py
+
+    damaged = tmp_path / "damaged.h5"
+    shutil.copy(tiny, damaged)
+    with h5py.File(damaged, "r") as f:
+        d = f["train/trajectories"]
+        assert d.fletcher32
+        values = d[...].reshape(-1)
+        k = int(np.flatnonzero(np.abs(values) > 1)[0])  # exponent 0x40/0x3f: the flip is finite
+        offset = d.id.get_chunk_info(0).byte_offset
+        assert k * 4 < d.id.get_chunk_info(0).size
+    _flip_bit(damaged, offset + 4 * k + 3, 5)
+    with pytest.raises(ValueError, match=r"damaged: the checksum of train/trajectories does not "
+                       r"match.*regenerate it with `adjointsim data ks --size tiny --out"):
+        datamod.load(damaged)
+
+
+def test_datasets_without_checksums_load_with_a_warning(tiny, tmp_path):
+    import h5py
+
+    old = tmp_path / "old.h5"
+    with h5py.File(tiny, "r") as src, h5py.File(old, "w") as dst:
+        for key, value in src.attrs.items():
+            dst.attrs[key] = value
+        dst.attrs["format_version"] = 1
+        for name in src:
+            for key in src[name]:
+                dst.create_dataset(f"{name}/{key}", data=src[name][key][...])
+    with pytest.warns(UserWarning, match="predates checksums.*adjointsim data ks --size tiny"):
+        ds = datamod.load(old)
+    np.testing.assert_array_equal(ds.splits["train"].trajectories,
+                                  datamod.load(tiny).splits["train"].trajectories)
+
+
+def test_a_flipped_bit_in_a_checkpoint_is_detected(tiny, tmp_path):
+    """Defect 10: a flipped bit in a checkpoint's tensors used to load without complaint."""
+    train(_config(tiny, tmp_path / "r", setup="prediction", max_iterations=1), progress=False)
+    path = tmp_path / "r" / "checkpoint.pt"
+    weights = load_checkpoint(path)["model"]
+    name = max(weights, key=lambda k: weights[k].numel())
+    raw = path.read_bytes()
+    offset = raw.find(weights[name].numpy().tobytes())
+    assert offset > 0
+    _flip_bit(path, offset + 3 * weights[name].element_size(), 0)  # the 4th element's mantissa
+    loaded = torch.load(path, weights_only=False)  # torch itself does not notice
+    assert not torch.equal(loaded["model"][name], weights[name])
+    with pytest.raises(ValueError, match="damaged: its contents do not match the SHA-256 digest"
+                       ".*--resume.*--overwrite"):
+        load_checkpoint(path)
+    # A checkpoint from before digests loads with a warning.
+    del loaded["sha256"]
+    loaded["model"][name] = weights[name]
+    torch.save(loaded, path)
+    with pytest.warns(UserWarning, match="no digest"):
+        load_checkpoint(path)
+
+
 def test_dataset_from_another_configuration_is_refused(tiny, tmp_path):
     import shutil
 
@@ -261,11 +336,11 @@ def test_dataset_from_another_configuration_is_refused(tiny, tmp_path):
 
 
 @pytest.mark.parametrize("bad, message", [
-    ({"warmup": -1}, "warmup must be ≥ 0"),
-    ({"stride": 0}, "stride must be ≥ 1"),
-    ({"checkpoint_every": 0}, "checkpoint_every must be ≥ 1"),
+    ({"warmup": -1}, "'warmup': -1 is not an integer ≥ 0"),
+    ({"stride": 0}, "'stride': 0 is not an integer ≥ 1"),
+    ({"checkpoint_every": 0}, "'checkpoint_every': 0 is not an integer ≥ 1"),
     ({"curriculum": [[1, 1e-3, 5]]}, "not an \\[m, lr\\] pair"),
-    ({"curriculum": [[0, 1e-3]]}, "needs m ≥ 1"),
+    ({"curriculum": [[0, 1e-3]]}, "m an integer ≥ 1"),
 ])
 def test_bad_config_values_are_named(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -337,11 +412,13 @@ def test_evaluation_rollout_keeps_going_when_one_trajectory_blows_up():
 def test_tiny_study_end_to_end_and_resumes(tmp_path):
     import json
 
+    from adjointsim.runner import run
     from train.cli import main
-    from train.study import run_study
+    from train.studies import load_all
 
+    load_all()
     out = tmp_path / "study"
-    rows = run_study("ks", out, "tiny", progress=False)
+    rows = run("ks", out, "tiny", None, cluster="none", progress=False)
     assert len(rows) == 6  # 2 setups × 3 modes × 1 seed
     for row in rows:
         assert row["setup"] in ("prediction", "correction") and row["mode"] in ("ONE", "NOG", "WIG")
@@ -353,13 +430,12 @@ def test_tiny_study_end_to_end_and_resumes(tmp_path):
     # Everything finished is reused: running it again trains nothing and gives the same rows.
     stamp = (out / "correction-WIG-seed0" / "checkpoint.pt").stat().st_mtime_ns
     rows_path = tmp_path / "rows.json"
-    assert main(["study", "ks", "--size", "tiny", "--out", str(out), "--json", str(rows_path)]) == 0
-    assert json.loads(rows_path.read_text()) == rows
+    assert main(["study", "ks", "--size", "tiny", "--out", str(out), "--json", str(rows_path),
+                 "--cluster", "local"]) == 0  # nothing to run: no cluster is started
+    assert json.loads(rows_path.read_text()) == rows == json.loads((out / "rows.json").read_text())
     assert (out / "correction-WIG-seed0" / "checkpoint.pt").stat().st_mtime_ns == stamp
     with pytest.raises(ValueError, match="unknown study size 'huge'"):
-        run_study("ks", out, "huge")
-    # Two worker processes train the same models: the same rows, bit for bit.
-    assert run_study("ks", tmp_path / "parallel", "tiny", progress=False, jobs=2) == rows
+        run("ks", out, "huge", None, cluster="none")
 
 
 @pytest.mark.parametrize("argv, size", [([], "full"), (["--quick"], "quick"),

@@ -44,16 +44,25 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     e.set_defaults(func=_eval)
 
     s = sub.add_parser("study", help=COMMANDS["study"])
-    s.add_argument("problem", choices=("ks", "kolmogorov"))
+    s.add_argument("problem", metavar="NAME", help="ks, kolmogorov, or any study registered in "
+                   "train/studies/ (an unknown name lists them)")
     s.add_argument("--quick", action="store_const", const="quick", dest="size",
                    help="a reduced study (minutes); same as --size quick")
-    s.add_argument("--size", choices=("tiny", "quick", "full"), default="full",
-                   help="tiny: seconds, a smoke test of the whole pipeline")
+    s.add_argument("--size", default="full",
+                   help="tiny (seconds, a smoke test of the whole pipeline), quick or full")
     s.add_argument("--seeds", type=int, default=None)
-    s.add_argument("--jobs", type=int, default=1,
-                   help="models trained at once (one thread each; 2 suits a 2-core machine)")
+    s.add_argument("--jobs", type=int, default=2,
+                   help="worker processes of the local cluster (one thread each; default 2)")
+    s.add_argument("--cluster", default=None,
+                   help="local (default: a Dask cluster of --jobs processes started here), none "
+                   "(this process, one cell after another) or a scheduler address "
+                   "tcp://HOST:PORT; default $DASK_SCHEDULER_ADDRESS if set, else local")
+    s.add_argument("--retries", type=int, default=1,
+                   help="times a failed cell is run again, resuming from its checkpoint")
     s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-SIZE]")
     s.add_argument("--json", type=Path, default=None, help="write one object per model here")
+    s.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress bar")
     s.set_defaults(func=_study, size="full")
 
 
@@ -84,7 +93,7 @@ def _train(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     from . import data
     from .evaluate import evaluate
-    from .study import STUDIES, load_model
+    from .studies.list_et_al import STUDIES, load_model
     from .trainer import DTYPES
 
     model, cfg = load_model(args.run)
@@ -96,17 +105,33 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _study(args: argparse.Namespace) -> int:
-    from .study import run_study, table
+    """Every unfinished cell through :func:`adjointsim.runner.run`; exit 1 if any failed (each
+    failure is printed with its cell id), after the report of what finished."""
+    from adjointsim import runner
 
+    from .studies import load_all
+
+    load_all()
     suffix = "" if args.size == "full" else f"-{args.size}"
     out = args.out or Path("runs") / f"study-{args.problem}{suffix}"
-    rows = run_study(args.problem, out, args.size, args.seeds, jobs=args.jobs)
-    print(table(rows))
-    print(f"plot: {out / 'study.png'}; per-model results and rollout plots under {out}")
+    failed: list[tuple[str, str]] = []
+    try:
+        rows = runner.run(args.problem, out, args.size, args.seeds, cluster=args.cluster,
+                          jobs=args.jobs, retries=args.retries, progress=args.progress,
+                          report=False)
+    except runner.CellsFailed as e:
+        rows, failed = e.rows, e.failures
+    if rows:
+        print(runner.get_study(args.problem).report(rows, out.resolve()))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=2))
-    return 0
+        args.json.write_text(runner.dumps(rows))
+    for cell_id, error in failed:
+        print(f"adjointsim study: cell {cell_id} failed: {error}", file=sys.stderr)
+    if failed:
+        print(f"adjointsim study: {len(failed)} cell(s) failed, {len(rows)} finished; run the "
+              "same command again to retry only the failed ones", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,25 +1,26 @@
-"""Studies: the grid of setups × unroll modes × seeds of List et al., trained, evaluated and
-tabulated (mean ± std per cell), with a plot and an optional JSON file.
+"""The studies of List et al.: setups × unroll modes × seeds, trained, evaluated and
+tabulated (mean ± std per cell), with a plot; ``ks`` (Kuramoto–Sivashinsky) and
+``kolmogorov`` (2D Kolmogorov flow), run by :mod:`adjointsim.runner`.
 
-Everything a study makes lives under its output directory, and every finished piece (the
-dataset, each model's checkpoint and results) is reused, so an interrupted study resumes.
+Everything a study makes lives under its output directory: the dataset (made once, before the
+cells), and per cell ``SETUP-MODE-seedK/`` with the model's checkpoint (a retried cell resumes
+from it), its results and rollout plots.
 """
 
 from __future__ import annotations
 
-import json
-import multiprocessing
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from functools import partial
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
-from . import data as datamod
-from .atomic import write_text
-from .evaluate import TEST_SPLITS, evaluate
-from .trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
+from adjointsim.runner import Study, register_study
+
+from .. import data as datamod
+from ..atomic import write_text
+from ..evaluate import TEST_SPLITS, evaluate
+from ..trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 
 #: per problem: the grid, the evaluation horizon and the training settings per study size
 STUDIES = {
@@ -52,71 +53,39 @@ STUDIES = {
 }
 
 
-def run_study(
-    problem: str,
-    out: str | Path,
-    size: str = "full",
-    seeds: int | None = None,
-    progress: bool = True,
-    jobs: int = 1,
-) -> list[dict]:
-    """Train and evaluate every cell; returns one row per trained model.
-
-    ``jobs`` > 1 trains that many cells at once in worker processes (one torch thread each),
-    showing one progress bar over the cells instead of one per model.
-    """
-    if problem not in STUDIES:
-        raise ValueError(f"unknown study {problem!r}; choose from {sorted(STUDIES)}")
+def _cells(problem: str, size: str, seeds: int | None) -> list[dict]:
     spec = STUDIES[problem]
-    sizes = [k for k in spec if isinstance(spec[k], dict)]
-    if size not in sizes:
-        raise ValueError(f"unknown study size {size!r}; choose from {sizes}")
-    if jobs < 1:
-        raise ValueError(f"jobs must be ≥ 1, not {jobs}")
-    settings = spec[size]
-    out = Path(out)
-    data_path = out / f"{problem}-{settings['data']}.h5"
+    n = seeds if seeds is not None else spec[size]["seeds"]
+    return [{"id": f"{setup}-{mode}-seed{seed}", "problem": problem, "size": size,
+             "setup": setup, "mode": mode, "seed": seed}
+            for setup in spec["setups"] for mode in spec["modes"] for seed in range(n)]
+
+
+def _prepare(problem: str, size: str, out: Path) -> dict:
+    """The dataset, made once in the calling process and shared by every cell."""
+    data_path = out / f"{problem}-{STUDIES[problem][size]['data']}.h5"
     if not data_path.exists():
-        datamod.save(datamod.generate(problem, settings["data"], seed=0, progress=progress),
-                     data_path)
+        datamod.save(datamod.generate(problem, STUDIES[problem][size]["data"], seed=0), data_path)
     datamod.load(data_path)  # a damaged or stale file fails here, before any training
-    cells = [(setup, mode, seed) for setup in spec["setups"] for mode in spec["modes"]
-             for seed in range(seeds if seeds is not None else settings["seeds"])]
-    todo = [c for c in cells if not _result_path(out, *c).exists()]
-    args = [(problem, size, str(data_path), str(out), *c) for c in todo]
-    if jobs > 1 and len(todo) > 1:
-        context = multiprocessing.get_context("spawn")  # fresh torch/numba state per worker
-        with ProcessPoolExecutor(min(jobs, len(todo)), mp_context=context) as pool:
-            futures = [pool.submit(_run_cell, *a, progress=False) for a in args]
-            for future in tqdm(as_completed(futures), total=len(futures), desc="study cells",
-                               disable=not progress, unit="model"):
-                future.result()
-    else:
-        for a in args:
-            _run_cell(*a, progress=progress)
-    rows = [json.loads(_result_path(out, *c).read_text()) for c in cells]
-    write_summary(rows, out, spec["horizon"])
-    return rows
+    return {"data": str(data_path.resolve())}
 
 
-def _result_path(out: Path, setup: str, mode: str, seed: int) -> Path:
-    return out / f"{setup}-{mode}-seed{seed}" / "results.json"
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    """Train (resuming from the cell's checkpoint if there is one) and evaluate one model."""
+    spec = STUDIES[cell["problem"]]
+    cfg = TrainConfig.load(problem=cell["problem"], data=cell["data"], out=str(run_dir),
+                           setup=cell["setup"], mode=cell["mode"], seed=cell["seed"],
+                           **spec[cell["size"]]["train"])
+    model = train(cfg, resume=True, progress=False)
+    metrics = evaluate(model, datamod.load(cell["data"]), spec["horizon"], DTYPES[cfg.dtype],
+                       run_dir)
+    return {**cell, "model": describe(model), **metrics}
 
 
-def _run_cell(problem: str, size: str, data_path: str, out: str, setup: str, mode: str,
-              seed: int, progress: bool) -> None:
-    """Train (resuming if a checkpoint exists), evaluate and write one cell's results."""
-    spec = STUDIES[problem]
-    result_path = _result_path(Path(out), setup, mode, seed)
-    cfg = TrainConfig.load(problem=problem, data=data_path, out=str(result_path.parent),
-                           setup=setup, mode=mode, seed=seed, **spec[size]["train"])
-    model = train(cfg, resume=True, progress=progress)
-    if progress:
-        print(f"{setup}/{mode}/seed {seed}: {describe(model)}", flush=True)
-    metrics = evaluate(model, datamod.load(data_path), spec["horizon"], DTYPES[cfg.dtype],
-                       result_path.parent)
-    row = {"problem": problem, "setup": setup, "mode": mode, "seed": seed, **metrics}
-    write_text(result_path, json.dumps(row, indent=2))
+def _report(problem: str, rows: list[dict], out: Path) -> str:
+    write_summary(rows, out, STUDIES[problem]["horizon"])
+    return (table(rows) + f"\nplot: {out / 'study.png'}; per-model results and rollout plots "
+            f"under {out}")
 
 
 def load_model(run: str | Path):
@@ -185,3 +154,14 @@ def write_summary(rows: list[dict], out: Path, horizon: int) -> None:
     fig.tight_layout()
     fig.savefig(out / "study.png", dpi=120)
     plt.close(fig)
+
+
+for _problem, _spec in STUDIES.items():
+    register_study(Study(
+        name=_problem,
+        sizes=tuple(k for k in ("tiny", "quick", "full") if k in _spec),
+        cells=partial(_cells, _problem),
+        run_cell=run_cell,
+        report=partial(_report, _problem),
+        prepare=partial(_prepare, _problem),
+    ))

@@ -1,0 +1,394 @@
+"""One runner for every study: each cell of a study is a task on a Dask distributed cluster.
+
+A study (:class:`Study`, registered once with :func:`register_study`) lists its cells, runs one
+cell in its own run directory and tabulates the finished rows. :func:`run` sends the unfinished
+cells to
+
+- ``cluster="local"``: a ``LocalCluster`` started in this process with ``jobs`` single-threaded
+  worker processes (no dashboard), stopped at the end;
+- ``cluster="tcp://HOST:PORT"``: an existing scheduler (``dask scheduler`` / ``dask worker``),
+  after checking that every worker runs this project's code and writes where we read;
+- ``cluster="none"``: this process, one cell after another (for debugging);
+- ``cluster=None``: ``$DASK_SCHEDULER_ADDRESS`` if set, else ``"local"``.
+
+A cell is finished when its ``OUT/<id>/row.json`` exists; the runner writes it (atomically, on
+the worker) from what ``run_cell`` returns, so a rerun submits only unfinished cells, and a
+retried task (an exception, or a worker that died) starts ``run_cell`` again in the same
+directory, where it resumes from its own checkpoint. Failures are reported per cell while the
+others finish; :class:`CellsFailed` carries both.
+
+Dask is imported only inside the functions that need it, so other commands do not pay for it.
+No torch import here either: the worker gets one thread through the environment.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+import math
+import os
+import sys
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+# The project's one atomic writer; train/__init__ imports nothing, so this loads no torch.
+from train.atomic import write_text
+
+ROW_FILE = "row.json"
+_ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+
+@dataclass(frozen=True)
+class Study:
+    """A grid of independent cells (see ``STUDY_INTERFACE.md``)."""
+
+    name: str
+    sizes: tuple[str, ...]
+    cells: Callable[[str, int | None], list[dict]]
+    run_cell: Callable[[dict, Path], dict]
+    report: Callable[[list[dict], Path], str]
+    prepare: Callable[[str, Path], dict] | None = None
+
+
+_STUDIES: dict[str, Study] = {}
+
+
+def register_study(study: Study) -> None:
+    """Make ``study`` known by its name (re-registering the same name replaces it, so a module
+    imported twice, e.g. by a worker, is harmless)."""
+    _STUDIES[study.name] = study
+
+
+def get_study(name: str) -> Study:
+    if name not in _STUDIES:
+        raise ValueError(f"unknown study {name!r}; choose from {sorted(_STUDIES)}")
+    return _STUDIES[name]
+
+
+def study_names() -> list[str]:
+    return sorted(_STUDIES)
+
+
+class CellsFailed(RuntimeError):
+    """Some cells failed (after their retries); the others finished.
+
+    ``failures`` holds ``(cell id, one-line error)``, ``rows`` the finished rows.
+    """
+
+    def __init__(self, study: str, failures: list[tuple[str, str]], rows: list[dict]):
+        self.failures = failures
+        self.rows = rows
+        lines = "; ".join(f"{cid}: {msg}" for cid, msg in failures)
+        super().__init__(f"{study}: {len(failures)} of {len(failures) + len(rows)} cells "
+                         f"failed ({lines})")
+
+
+def run(
+    study_name: str,
+    out: str | Path,
+    size: str,
+    seeds: int | None,
+    cluster: str | None = "local",
+    jobs: int = 2,
+    retries: int = 1,
+    progress: bool = True,
+    report: bool = True,
+) -> list[dict]:
+    """Run every unfinished cell of a study, write ``OUT/rows.json`` and (if ``report``) the
+    study's report of the finished rows.
+
+    Returns the rows in cell order; raises :class:`CellsFailed` (after writing what finished)
+    if any cell failed.
+    """
+    study = get_study(study_name)
+    if size not in study.sizes:
+        raise ValueError(f"unknown study size {size!r} for {study_name}; "
+                         f"choose from {list(study.sizes)}")
+    if jobs < 1:
+        raise ValueError(f"--jobs must be ≥ 1, not {jobs}")
+    if retries < 0:
+        raise ValueError(f"--retries must be ≥ 0, not {retries}")
+    cluster = resolve_cluster(cluster)
+    out = Path(out).resolve()
+    cells = study.cells(size, seeds)
+    _check_ids(cells, study_name)
+    rows: dict[str, dict] = {}
+    for cell in cells:
+        row = finished_row(cell, out / cell["id"])
+        if row is not None:
+            rows[cell["id"]] = row
+    todo = [c for c in cells if c["id"] not in rows]
+    failures: list[tuple[str, str]] = []
+    if todo:
+        out.mkdir(parents=True, exist_ok=True)
+        extra = study.prepare(size, out) if study.prepare is not None else {}
+        todo = [{**c, **extra} for c in todo]
+        bar = tqdm(total=len(todo), desc=f"{study_name} cells", unit="cell",
+                   disable=not progress, initial=0)
+
+        def done(cell_id: str, row: dict | None, error: str | None) -> None:
+            if error is None:
+                rows[cell_id] = row
+            else:
+                failures.append((cell_id, error))
+                bar.write(f"{study_name}: cell {cell_id} failed: {error}")
+            bar.update()
+
+        try:
+            if cluster == "none":
+                _run_here(study, todo, out, retries, done)
+            else:
+                _run_on_dask(study, todo, out, cluster, jobs, retries, done)
+        finally:
+            bar.close()
+    finished = [rows[c["id"]] for c in cells if c["id"] in rows]
+    write_text(out / "rows.json", dumps(finished))
+    if finished and report:
+        study.report(finished, out)
+    if failures:
+        order = {c["id"]: i for i, c in enumerate(cells)}
+        raise CellsFailed(study_name, sorted(failures, key=lambda f: order[f[0]]), finished)
+    return finished
+
+
+def resolve_cluster(cluster: str | None) -> str:
+    """``None`` means ``$DASK_SCHEDULER_ADDRESS`` if set, else ``"local"``; a given value
+    wins over the environment."""
+    if cluster is None:
+        cluster = os.environ.get("DASK_SCHEDULER_ADDRESS") or "local"
+    if cluster not in ("local", "none") and "://" not in cluster and ":" not in cluster:
+        raise ValueError(f"--cluster {cluster!r}: give local, none or a scheduler address "
+                         "such as tcp://HOST:8786")
+    return cluster
+
+
+def finished_row(cell: dict, run_dir: Path) -> dict | None:
+    """The cell's row if ``run_dir`` holds a finished one; refuses a row of another cell."""
+    path = run_dir / ROW_FILE
+    if not path.exists():
+        return None
+    try:
+        row = json.loads(path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{path} is damaged ({e}); delete it to run the cell again") from None
+    differ = sorted(k for k, v in cell.items() if _jsonable(v) != row.get(k))
+    if differ:
+        raise ValueError(f"{path} holds a result of another configuration (differs in "
+                         f"{differ}); use another --out, or delete {run_dir} to redo the cell")
+    return row
+
+
+def dumps(obj: Any) -> str:
+    """JSON without NaN/Infinity (non-finite numbers become null)."""
+    return json.dumps(_jsonable(obj), indent=2, allow_nan=False)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):  # NumPy scalars
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _check_ids(cells: list[dict], study_name: str) -> None:
+    seen: set[str] = set()
+    for cell in cells:
+        cid = cell.get("id")
+        if not isinstance(cid, str) or not cid or "/" in cid or cid.startswith("."):
+            raise ValueError(f"study {study_name}: cell id {cid!r} is not a directory name")
+        if cid in seen:
+            raise ValueError(f"study {study_name}: two cells share the id {cid!r}")
+        seen.add(cid)
+
+
+def execute(run_cell: Callable[[dict, Path], dict], cell: dict, run_dir: str) -> dict:
+    """One cell, on a worker (or here): run it, then write its row atomically, so that a row
+    file exists only for a cell that finished. A finished cell is not run again (Dask
+    recomputes a task whose result was lost with a dead worker before the client got it)."""
+    run_dir_path = Path(run_dir)
+    row = finished_row(cell, run_dir_path)
+    if row is not None:
+        return row
+    run_dir_path.mkdir(parents=True, exist_ok=True)
+    row = _jsonable({**cell, **run_cell(cell, run_dir_path)})
+    write_text(run_dir_path / ROW_FILE, dumps(row))
+    return row
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+
+
+def _run_here(study: Study, todo: list[dict], out: Path, retries: int, done) -> None:
+    for cell in todo:
+        for attempt in range(retries + 1):
+            try:
+                row = execute(study.run_cell, cell, str(out / cell["id"]))
+            except Exception as e:  # reported per cell; the others still run
+                if attempt == retries:
+                    done(cell["id"], None, _one_line(e))
+            else:
+                done(cell["id"], row, None)
+                break
+
+
+def _worker_execute(run_cell: Callable[[dict, Path], dict], cell: dict, run_dir: str) -> dict:
+    # Before the cell imports torch (the nanny sets these too; a bare worker may not).
+    os.environ.update(_ONE_THREAD)
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
+    return execute(run_cell, cell, run_dir)
+
+
+def _run_on_dask(study: Study, todo: list[dict], out: Path, cluster: str, jobs: int,
+                 retries: int, done) -> None:
+    import logging
+
+    import dask
+    from distributed import Client, LocalCluster, as_completed
+    from distributed.client import FutureCancelledError
+
+    # A worker that dies running a task counts as a failure of that task: retried as often as
+    # an exception is (this holds for the in-process scheduler; a remote one keeps its own
+    # distributed.scheduler.allowed-failures, 3 by default).
+    with dask.config.set({"distributed.scheduler.allowed-failures": retries,
+                          "distributed.nanny.pre-spawn-environ": _ONE_THREAD}):
+        if cluster == "local":
+            local = LocalCluster(n_workers=min(jobs, len(todo)), threads_per_worker=1,
+                                 processes=True, dashboard_address=None,
+                                 silence_logs=logging.CRITICAL)
+            client = Client(local)
+        else:
+            local = None
+            client = _connect(cluster)
+            try:
+                check_workers(client, out, study)
+            except BaseException:
+                client.close()
+                raise
+        try:
+            futures = {}
+            for cell in todo:
+                f = client.submit(_worker_execute, study.run_cell, cell, str(out / cell["id"]),
+                                  key=f"{study.name}-{cell['id']}-{uuid.uuid4().hex[:8]}",
+                                  retries=retries, pure=False)
+                futures[f] = cell["id"]
+            for f in as_completed(futures):
+                try:
+                    done(futures[f], f.result(), None)
+                except FutureCancelledError:
+                    done(futures[f], None, "cancelled (the scheduler or its workers went away)")
+                except Exception as e:
+                    done(futures[f], None, _describe_failure(e, retries))
+        finally:
+            client.close()
+            if local is not None:
+                local.close()
+
+
+def _describe_failure(exc: BaseException, retries: int) -> str:
+    if type(exc).__name__ == "KilledWorker":
+        return (f"its worker process died (killed, out of memory or os._exit) on each of "
+                f"{retries + 1} attempts")
+    return _one_line(exc)
+
+
+def _connect(address: str):
+    from distributed import Client
+
+    try:
+        client = Client(address, timeout="10s")
+    except (OSError, TimeoutError) as e:
+        raise OSError(f"cannot reach a Dask scheduler at {address} ({_one_line(e)}); start one "
+                      "with `dask scheduler` and give its address (tcp://HOST:8786)") from None
+    try:
+        client.wait_for_workers(1, timeout=30)
+    except (TimeoutError, OSError):
+        client.close()
+        raise OSError(f"the scheduler at {address} has no workers; start some with "
+                      f"`dask worker {address} --nthreads 1` on each machine") from None
+    return client
+
+
+@cache
+def source_fingerprint() -> dict:
+    """This installation's version and a hash of its source files (adjointsim, train, nets),
+    so that a worker running other code, even uncommitted edits, is found before any work."""
+    import adjointsim
+
+    root = Path(adjointsim.__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for package in ("adjointsim", "train", "nets"):
+        for path in sorted((root / package).rglob("*.py")):
+            digest.update(str(path.relative_to(root)).encode())
+            digest.update(path.read_bytes())
+    return {"version": adjointsim.__version__, "source": digest.hexdigest()[:16]}
+
+
+def probe_worker(out: str, token: str, module: str) -> dict:
+    """Run on each worker: its code version, whether it can import the study and whether it
+    writes into the same ``out`` directory as the client (it must read the client's token)."""
+    import socket
+
+    info = {**source_fingerprint(), "host": socket.gethostname(), "problems": []}
+    try:
+        importlib.import_module(module)
+    except Exception as e:
+        info["problems"].append(f"cannot import the study module {module} ({_one_line(e)})")
+    try:
+        probe = Path(out) / f".probe-{socket.gethostname()}-{os.getpid()}"
+        write_text(probe, "ok")
+        probe.unlink()
+        if (Path(out) / ".runner-token").read_text() != token:
+            raise OSError("it sees another directory of that name")
+    except OSError as e:
+        info["problems"].append(f"cannot use the output directory {out} ({_one_line(e)}); "
+                                "it must be one shared directory (same path) on every machine")
+    return info
+
+
+def worker_problems(local: dict, probes: dict[str, dict]) -> list[str]:
+    """What is wrong with each worker, compared with this process (empty if nothing)."""
+    problems = []
+    for address, info in sorted(probes.items()):
+        where = f"worker {address} ({info.get('host', '?')})"
+        if info["version"] != local["version"] or info["source"] != local["source"]:
+            problems.append(
+                f"{where} runs adjointsim {info['version']} (source {info['source']}), this "
+                f"process {local['version']} (source {local['source']}): install the same "
+                "code on every machine (same commit, same edits) and restart the workers")
+        problems += [f"{where} {p}" for p in info["problems"]]
+    return problems
+
+
+def check_workers(client, out: Path, study: Study) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    token = uuid.uuid4().hex
+    write_text(out / ".runner-token", token)
+    try:
+        probes = client.run(probe_worker, str(out), token, study.run_cell.__module__)
+    except Exception as e:
+        raise OSError(f"the workers cannot run this project's code ({_one_line(e)}); install "
+                      "it on every machine (python3 -m pip install -e .) with the same "
+                      "Python packages and restart the workers") from None
+    finally:
+        (out / ".runner-token").unlink(missing_ok=True)
+    problems = worker_problems(source_fingerprint(), probes)
+    if problems:
+        raise OSError("; ".join(problems))

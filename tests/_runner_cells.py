@@ -1,0 +1,59 @@
+"""A test-only study for tests/test_runner.py, in a module of its own so that Dask worker
+processes can import its functions (tests/ is on their path: spawned local workers inherit
+sys.path, the test's `dask worker` subprocess gets PYTHONPATH).
+
+Cells: "ok-K" do a little torch work; "dies" checkpoints one epoch at a time and kills its
+worker process (os._exit) in epoch 2 on its first attempt; "raises" raises while the file
+OUT/FAIL exists. Every call appends "id pid" to OUT/calls.log, so tests see what ran where.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+from adjointsim.runner import Study, register_study
+from train.atomic import write_text
+
+EPOCHS = 4
+
+
+def cells(size: str, seeds: int | None) -> list[dict]:
+    n = 4 if seeds is None else seeds
+    return [{"id": f"ok-{k}", "seed": k} for k in range(n)] + [{"id": "dies"}, {"id": "raises"}]
+
+
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    import torch
+
+    with open(run_dir.parent / "calls.log", "a") as log:
+        log.write(f"{cell['id']} {os.getpid()}\n")
+    row = {"pid": os.getpid(), "threads": torch.get_num_threads()}
+    if cell["id"] == "raises" and (run_dir.parent / "FAIL").exists():
+        raise ValueError("boom in cell raises\nsecond line")
+    if cell["id"] == "dies":
+        ckpt = run_dir / "checkpoint.json"
+        start = json.loads(ckpt.read_text())["epoch"] if ckpt.exists() else 0
+        for epoch in range(start, EPOCHS):
+            if epoch == 2 and not (run_dir / "died-once").exists():
+                (run_dir / "died-once").touch()
+                os._exit(1)
+            write_text(ckpt, json.dumps({"epoch": epoch + 1}))
+        return {**row, "resumed_from": start}
+    torch.manual_seed(cell.get("seed", 0))
+    a = torch.randn(200, 200)
+    for _ in range(20):
+        a = torch.sin(a @ a / 200)
+    time.sleep(0.3)  # long enough that both workers take cells
+    return {**row, "value": float(a.sum())}
+
+
+def report(rows: list[dict], out: Path) -> str:
+    text = "\n".join(f"{r['id']} {r['pid']}" for r in rows)
+    write_text(out / "table.txt", text + "\n")
+    return text
+
+
+register_study(Study("runner-test", ("tiny",), cells, run_cell, report))
