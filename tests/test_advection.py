@@ -216,8 +216,8 @@ def test_unstable_velocity_override_is_rejected():
 
 
 def test_bad_scenes():
-    with pytest.raises(ValueError, match="at least 3"):
-        UpwindAdvection1D(n=2)
+    with pytest.raises(ValueError, match="n must be an integer ≥ 2, got 1"):
+        UpwindAdvection1D(n=1)
     with pytest.raises(ValueError, match="give dt"):
         LaxWendroffAdvection2D(velocity_x=0.0, velocity_y=0.0)
 

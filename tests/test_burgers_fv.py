@@ -212,12 +212,12 @@ def test_unstable_dt_names_the_limit_and_the_largest_stable_dt():
     assert "stability limit 1" in str(err.value) and "substeps ≥ 3" in str(err.value)
     with pytest.raises(ValueError, match="largest stable Δt"):
         BurgersRusanov2D(n=16, dt=0.1)
-    with pytest.raises(ValueError, match="ν must be ≥ 0"):
+    with pytest.raises(ValueError, match="nu must be a finite number ≥ 0, got -0.1"):
         BurgersRusanov1D(nu=-0.1)
-    with pytest.raises(ValueError, match="umax must be ≥ 0"):
+    with pytest.raises(ValueError, match="umax must be a finite number ≥ 0, got -1.0"):
         BurgersRusanov1D(umax=-1.0)
-    with pytest.raises(ValueError, match="at least 3"):
-        BurgersRusanov2D(n=2)
+    with pytest.raises(ValueError, match="n must be an integer ≥ 2, got 1"):
+        BurgersRusanov2D(n=1)
 
 
 def test_unstable_nu_override_is_rejected():

@@ -135,7 +135,7 @@ def test_bad_input():
         Poisson2D(n=8, kappa=-1.0)
     with pytest.raises(ValueError, match="κ must exceed −λ_min"):
         s.solve(np.zeros((1, 1, 8, 8)), params={"kappa": -2.0})
-    with pytest.raises(ValueError, match="'dirichlet' and 'periodic'"):
+    with pytest.raises(ValueError, match="bc must be one of 'periodic', 'dirichlet'"):
         Poisson2D(bc="neumann")
     with pytest.raises(ValueError, match="no control hook"):
         s.rollout(np.zeros((1, 1, 8, 8)), 2, np.zeros((2, 1, 1)))

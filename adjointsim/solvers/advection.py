@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..stepper import Choice, Range, Stepper
 
 
@@ -142,23 +143,32 @@ class AdvectionScene(Stepper):
     ndim: ClassVar[int]
     stability: ClassVar[str]
 
+    #: smallest n per axis: the stencil's wrap-around along the contiguous axis needs two
+    #: points (adjoints checked at n = 2 in tests/test_scene_validation.py)
+    min_points: ClassVar[int] = 2
+
     def _setup(
-        self, n: int, length: float, velocity: tuple[float, ...], dt: float | None, cfl: float
+        self, n: int, length: float, velocity: dict[str, float], dt: float | None, cfl: float
     ) -> None:
-        if int(n) < 3:
-            raise ValueError(f"{self.name}: the grid needs at least 3 points per axis, not {n}")
-        self.grid_shape = (int(n),) * self.ndim
+        n = validate.integer(self.name, "n", n, ge=self.min_points)
+        self.grid_shape = (n,) * self.ndim
         self.channels = 1
         self.control_shape = (1, *self.grid_shape)
-        self.length = float(length)
-        self.h = self.length / int(n)
-        self.param_values = tuple(float(a) for a in velocity)
+        self.length = validate.number(self.name, "length", length, gt=0)
+        self.h = self.length / n
+        self.param_values = tuple(validate.number(self.name, k, a) for k, a in velocity.items())
+        cfl = validate.number(
+            self.name, "cfl", cfl, gt=0, le=1, why="dt=None takes cfl × the largest stable Δt"
+        )
         if dt is None:
             limit = self.max_dt(np.array(self.param_values))
             if not np.isfinite(limit):
-                raise ValueError(f"{self.name}: the velocity is zero; give dt explicitly")
+                raise ValueError(
+                    f"{self.name}: the velocity is zero, so dt=None (cfl × the largest stable Δt) "
+                    "has no time scale; give dt explicitly"
+                )
             dt = cfl * limit
-        self.dt = float(dt)
+        self.dt = validate.number(self.name, "dt", dt, gt=0)
         self.check_params(np.array(self.param_values))
 
     def nodes(self) -> np.ndarray:
@@ -202,7 +212,8 @@ class AdvectionScene(Stepper):
             nu = ", ".join(f"{c:.4g}" for c in self.courant(p))
             raise ValueError(
                 f"{self.name}: Δt = {self.dt:.6g} breaks the stability limit {self.stability} "
-                f"(Courant numbers ν = a Δt / h = {nu}); the largest stable Δt is {limit:.6g}"
+                f"(Courant numbers ν = a Δt / h = {nu}); the largest stable Δt is {limit:.6g}: "
+                f"pass dt ≤ {limit:.6g}, or dt=None with 0 < cfl ≤ 1"
             )
 
     def _kernel_args(self, p: np.ndarray, dtype: Any) -> tuple:
@@ -249,7 +260,7 @@ class Advection1D(AdvectionScene):
         cfl: float = 0.5,
     ):
         """``dt`` defaults to ``cfl`` times the scheme's largest stable Δt."""
-        self._setup(n, length, (velocity,), dt, cfl)
+        self._setup(n, length, {"velocity": velocity}, dt, cfl)
 
 
 class Advection2D(AdvectionScene):
@@ -274,4 +285,4 @@ class Advection2D(AdvectionScene):
         cfl: float = 0.5,
     ):
         """``dt`` defaults to ``cfl`` times the scheme's largest stable Δt."""
-        self._setup(n, length, (velocity_x, velocity_y), dt, cfl)
+        self._setup(n, length, {"velocity_x": velocity_x, "velocity_y": velocity_y}, dt, cfl)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..registry import register
 from ..spectral.fft2d import (
     derivative_wavenumbers,
@@ -81,6 +82,8 @@ class AdvectionDiffusion2D(Stepper):
     name = "advdiff2d-etdrk4"
     complex_step = False
     param_names = ("velocity_x", "velocity_y", "nu")
+    #: smallest (even) n the kernels and the default state support
+    min_points = 4
     # Velocities from a list and ν bounded away from 0: the checker perturbs a parameter by a
     # multiple of its own size, which for a value like 1e-200 moves nothing.
     space = {
@@ -99,16 +102,22 @@ class AdvectionDiffusion2D(Stepper):
         nu: float = 0.02,
         dt: float = 0.05,
     ):
+        name = self.name
+        n = validate.integer(name, "n", n, ge=self.min_points, even=True, why="real FFT grid")
         kx, ky = wavenumbers(n)
         dkx, dky = derivative_wavenumbers(n)
         self.n = n
         self.grid_shape = (n, n)
         self.channels = 1
         self.control_shape = (1, n, n)
-        self.dt = float(dt)
+        # The exact exponential has no Δt limit; Δt ≤ 0 would run backwards or stand still.
+        self.dt = validate.number(name, "dt", dt, gt=0)
         self.k2 = kx**2 + ky**2
         self._dk = (dkx[:, 0], dky[0])
-        self.param_values = (float(velocity_x), float(velocity_y), float(nu))
+        self.param_values = tuple(
+            validate.number(name, k, a)
+            for k, a in zip(self.param_names, (velocity_x, velocity_y, nu))
+        )
         self.check_params(np.array(self.param_values))
 
     @classmethod
@@ -116,11 +125,11 @@ class AdvectionDiffusion2D(Stepper):
         return cls(n=16, velocity_x=1.0, velocity_y=-0.5, nu=0.1, dt=0.05)
 
     def check_params(self, p: np.ndarray) -> None:
-        if p[2] < 0:
-            raise ValueError(
-                f"{self.name}: the viscosity ν = {p[2]:.4g} must be ≥ 0 (exp(−ν|k|²Δt) would "
-                "grow without bound); the exact exponential has no Δt limit"
-            )
+        validate.number(
+            self.name, "nu", p[2], ge=0,
+            why="the viscosity ν; exp(−ν|k|²Δt) would grow without bound; the exact "
+            "exponential has no Δt limit",
+        )
 
     def random_state(
         self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..grid import PERIODIC, laplacian
 from ..registry import register
 from ..stepper import Choice, Range, Stepper
@@ -217,6 +218,9 @@ class BurgersScene(Stepper):
 
     ndim: int
     default_n: int
+    #: smallest cells per axis: the periodic flux and Laplacian loops need a neighbour
+    #: distinct from the cell itself (adjoints checked at n = 2 in tests/test_scene_validation.py)
+    min_points = 2
     param_names = ("nu",)
 
     def __init__(
@@ -235,29 +239,37 @@ class BurgersScene(Stepper):
         (default: ``amplitude``) bounds |u| for the stability check. ``dt=None`` takes ``cfl``
         times the largest stable Δt; ``substeps=None`` the fewest sub-steps that make ``dt``
         stable."""
-        n = self.default_n if n is None else int(n)
-        if n < 3:
-            raise ValueError(f"{self.name}: the grid needs at least 3 cells per axis, not {n}")
+        name = self.name
+        n = self.default_n if n is None else validate.integer(name, "n", n, ge=self.min_points)
         self.grid_shape = (n,) * self.ndim
         self.channels = 1
         self.control_shape = (1, *self.grid_shape)
-        self.length, self.start = float(length), float(start)
+        self.length = validate.number(name, "length", length, gt=0)
+        self.start = validate.number(name, "start", start)
         self.h = self.length / n
-        self.amplitude = float(amplitude)
-        self.umax = float(umax) if umax is not None else self.amplitude
-        if not self.umax >= 0:
-            raise ValueError(f"{self.name}: the velocity bound umax must be ≥ 0, not {self.umax}")
-        self.param_values = (float(nu),)
+        self.amplitude = validate.number(name, "amplitude", amplitude, gt=0)
+        self.umax = (
+            self.amplitude if umax is None
+            else validate.number(name, "umax", umax, ge=0, why="a bound on |u|")
+        )
+        nu = validate.number(name, "nu", nu, ge=0)
+        self.param_values = (nu,)
+        if substeps is not None:
+            substeps = validate.integer(name, "substeps", substeps, ge=1)
+        cfl = validate.number(
+            name, "cfl", cfl, gt=0, le=1, why="dt=None takes cfl × the largest stable Δt"
+        )
         if dt is None:
-            self.substeps = 1 if substeps is None else int(substeps)
+            if self._rate(nu) == 0:
+                raise ValueError(
+                    f"{name}: umax = 0 and nu = 0 set no time scale for dt=None; give dt"
+                )
+            self.substeps = 1 if substeps is None else substeps
             self.dt = cfl * self.substeps / self._rate(nu)
         else:
-            self.dt = float(dt)
-            self.substeps = (
-                max(1, math.ceil(self.dt * self._rate(nu))) if substeps is None else int(substeps)
-            )
-        if self.substeps < 1:
-            raise ValueError(f"{self.name}: substeps must be ≥ 1, not {self.substeps}")
+            self.dt = validate.number(name, "dt", dt, gt=0)
+            fewest = max(1, math.ceil(self.dt * self._rate(nu)))
+            self.substeps = fewest if substeps is None else substeps
         self.check_params(np.array(self.param_values))
 
     def _rate(self, nu: float) -> float:
@@ -265,8 +277,7 @@ class BurgersScene(Stepper):
         return self.ndim * (self.umax / self.h + 2 * nu / self.h**2)
 
     def check_params(self, p: np.ndarray) -> None:
-        if p[0] < 0:
-            raise ValueError(f"{self.name}: the viscosity ν must be ≥ 0, not {p[0]}")
+        validate.number(self.name, "nu", p[0], ge=0, why="the viscosity ν")
         tau = self.dt / self.substeps
         number = tau * self._rate(p[0])
         if number > 1 + 1e-12:

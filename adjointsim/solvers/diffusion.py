@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..grid import boundary_code, spacing
+from .. import validate
+from ..grid import BOUNDARIES, boundary_code, spacing
 from ..stepper import Choice, Range, Stepper
 
 
@@ -24,6 +25,10 @@ class DiffusionScene(Stepper):
         "nu": Range(0.05, 1.0),
     }
 
+    #: smallest n per boundary condition: one periodic or Neumann point has a zero Laplacian
+    #: (ν would do nothing); one Dirichlet point is a valid grid
+    min_points = {"periodic": 2, "dirichlet": 1, "neumann": 2}
+
     def __init__(
         self,
         n: int = 32,
@@ -34,27 +39,34 @@ class DiffusionScene(Stepper):
         forcing: np.ndarray | None = None,
         forcing_amplitude: float = 1.0,
     ):
+        """``dt=None`` takes :meth:`default_dt`. ``forcing``: a profile g of shape (1, *grid),
+        scaled by the parameter ``forcing_amplitude``."""
+        bc = validate.choice(self.name, "bc", bc, tuple(BOUNDARIES))
+        n = validate.integer(
+            self.name, "n", n, ge=self.min_points[bc],
+            why=f"the smallest grid of this scheme with {bc} boundaries",
+        )
         self.bc_code = boundary_code(bc)
         self.bc = bc
         self.grid_shape = (n,) * self.ndim
         self.channels = 1
         self.control_shape = (1, *self.grid_shape)
-        self.length = float(length)
-        self.h = spacing(n, length, bc)
+        self.length = validate.number(self.name, "length", length, gt=0)
+        nu = validate.number(self.name, "nu", nu)
+        amplitude = validate.number(self.name, "forcing_amplitude", forcing_amplitude)
+        self.h = spacing(n, self.length, bc)
         self.inv_h2 = (1.0 / self.h**2, 1.0 / self.h**2 if self.ndim == 2 else 0.0)
-        self.dt = float(dt) if dt is not None else self.default_dt(nu)
+        self.dt = (
+            validate.number(self.name, "dt", dt, gt=0) if dt is not None else self.default_dt(nu)
+        )
         if forcing is None:
             self.forcing = np.zeros((0, 1, 1))
-            self.param_names, self.param_values = ("nu",), (float(nu),)
+            self.param_names, self.param_values = ("nu",), (nu,)
         else:
-            g = np.asarray(forcing, dtype=np.float64)
-            if g.shape != (1, *self.grid_shape):
-                raise ValueError(
-                    f"forcing profile has shape {g.shape}; expected {(1, *self.grid_shape)}"
-                )
+            g = validate.array(self.name, "forcing", forcing, (1, *self.grid_shape))
             self.forcing = self.as_2d(g)
             self.param_names = ("nu", "forcing")
-            self.param_values = (float(nu), float(forcing_amplitude))
+            self.param_values = (nu, amplitude)
         self.check_params(np.array(self.param_values))
 
     def default_dt(self, nu: float) -> float:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..grid import laplacian
 from ..registry import register
 from .diffusion import DiffusionScene
@@ -63,13 +64,22 @@ def _update(u, lap, out, ctrl, k, p, dt, g):
 
 
 class _FTCS(DiffusionScene):
+    def default_dt(self, nu: float) -> float:
+        """0.4/(ν Σ 1/h²): 80% of the stability limit; ν = 0 sets no time scale."""
+        why = "dt=None derives Δt from ν; for ν = 0 give dt"
+        validate.number(self.name, "nu", nu, gt=0, why=why)
+        return super().default_dt(nu)
+
     def check_params(self, p: np.ndarray) -> None:
+        validate.number(self.name, "nu", p[0], ge=0, why="backward diffusion is ill-posed")
         number = p[0] * self.dt * sum(self.inv_h2)
-        if number > 0.5 or p[0] < 0:
-            limit = 0.5 / (p[0] * sum(self.inv_h2)) if p[0] > 0 else float("inf")
+        if number > 0.5 * (1 + 1e-12):
+            limit = 0.5 / (p[0] * sum(self.inv_h2))
             raise ValueError(
-                f"{self.name}: diffusion number ν Δt Σ 1/h² = {number:.4g} exceeds the FTCS "
-                f"stability limit 1/2 (and ν must be ≥ 0); the largest stable Δt is {limit:.6g}"
+                f"{self.name}: Δt = {self.dt:.6g} breaks the FTCS stability limit "
+                f"ν Δt Σ 1/h² ≤ 1/2 (diffusion number {number:.4g} at ν = {p[0]:.4g}); the "
+                f"largest stable Δt is {limit:.6g}: pass dt ≤ {limit:.6g}, or dt=None for "
+                "0.8 of it"
             )
 
     def _args(self, dtype):

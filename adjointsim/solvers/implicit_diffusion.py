@@ -22,6 +22,7 @@ from typing import ClassVar
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..grid import NEUMANN, PERIODIC, ghost
 from ..registry import register
 from ..tridiagonal import factor, solve, solve_rows, transpose
@@ -261,6 +262,8 @@ def _dot(r, x):
 
 class _ThetaDiffusion(DiffusionScene):
     theta: ClassVar[float]
+    #: the (cyclic) Thomas solver needs two unknowns per axis
+    min_points = {"periodic": 2, "dirichlet": 2, "neumann": 2}
 
     def default_dt(self, nu: float) -> float:
         """Δt = L²/(1000 ν), a fixed fraction of the domain diffusion time, independent of the
@@ -268,15 +271,11 @@ class _ThetaDiffusion(DiffusionScene):
         return 1e-3 * self.length**2 / (nu if nu > 0 else 1.0)
 
     def check_params(self, p: np.ndarray) -> None:
-        if min(self.grid_shape) < 2:
-            raise ValueError(f"{self.name}: needs ≥ 2 unknowns per axis, not {self.grid_shape}")
-        if not (np.isfinite(self.dt) and self.dt > 0):
-            raise ValueError(f"{self.name}: Δt = {self.dt} must be finite and > 0")
-        if p[0] < 0:
-            raise ValueError(
-                f"{self.name}: ν = {p[0]:.6g} must be ≥ 0 (backward diffusion is ill-posed); for "
-                "ν ≥ 0 the scheme is unconditionally stable: the largest stable Δt is unbounded"
-            )
+        validate.number(
+            self.name, "nu", p[0], ge=0,
+            why="backward diffusion is ill-posed; for ν ≥ 0 the scheme is unconditionally "
+            "stable: the largest stable Δt is unbounded",
+        )
 
     def _args(self, dtype):
         return (self.dt, self.theta, *self.inv_h2, self.bc_code, self.forcing.astype(dtype))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import validate
 from ..stepper import Choice, Range
 from .spectral1d import ETDRKScene1D, _register_orders
 
@@ -54,11 +55,11 @@ class KuramotoSivashinskyETDRK(ETDRKScene1D):
         return [self.k**2, -self.k**4]
 
     def check_params(self, p: np.ndarray) -> None:
-        if p[1] <= 0:
-            raise ValueError(
-                f"{self.name}: the hyper-diffusion coefficient β = {p[1]:.4g} must be > 0 "
-                "(otherwise the short waves grow like exp(α k² Δt) without bound)"
-            )
+        validate.number(
+            self.name, "hyper_diffusion", p[1], gt=0,
+            why="the coefficient β of u_xxxx; otherwise the short waves grow like exp(α k² Δt) "
+            "without bound",
+        )
 
     @classmethod
     def list_et_al(cls, factor: float = 1.0, coarse: bool = False) -> KuramotoSivashinskyETDRK:
@@ -69,6 +70,8 @@ class KuramotoSivashinskyETDRK(ETDRKScene1D):
         Euler treats advection explicitly, and at Δt = 0.5 the modes near |k| ≈ 1 grow. From
         attractor states it blows up after a median of 16–32 frames (factor 1.4 → 0.85); in the
         correction setup the network keeps it on track. ``substeps=4`` would make it stable."""
+        factor = validate.number("ks1d list_et_al", "factor", factor, gt=0)
+        coarse = validate.flag("ks1d list_et_al", "coarse", coarse)
         return KS[1 if coarse else 2](n=48, length=2 * np.pi * 8 * factor, dt=1.0, substeps=2)
 
     @classmethod

@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..registry import register
 from ..spectral.etdrk import etdrk_coefficient_derivatives, etdrk_coefficients
 from ..spectral.fft2d import (
@@ -336,6 +337,8 @@ class NavierStokes2D(Stepper):
 
     order: ClassVar[int]
     complex_step = False
+    #: smallest (even) n the kernels and the default state support
+    min_points: ClassVar[int] = 4
     # ν, μ and Δt large enough that even a one-step rollout depends measurably on them: the
     # checker's finite-difference tangent (no complex step through real FFTs) needs that.
     space = {
@@ -357,29 +360,35 @@ class NavierStokes2D(Stepper):
         drag: float = 0.0,
         dealias: bool = True,
     ):
+        name = self.name
+        n = validate.integer(name, "n", n, ge=self.min_points, even=True, why="real FFT grid")
         kx, ky = wavenumbers(n)
         self.n = n
         self.grid_shape = (n, n)
         self.channels = 1
         self.control_shape = (1, n, n)
-        self.dt = float(dt)
-        self.dealias = bool(dealias)
-        cut = dealias_cutoff(n) if dealias else n // 2
+        # ETDRK integrates L exactly for any Δt > 0; Δt ≤ 0 would run backwards or stand still.
+        self.dt = validate.number(name, "dt", dt, gt=0)
+        self.dealias = validate.flag(name, "dealias", dealias)
+        nu = validate.number(name, "nu", nu)
+        drag = validate.number(name, "drag", drag)
+        forcing_amplitude = validate.number(name, "forcing_amplitude", forcing_amplitude)
+        cut = dealias_cutoff(n) if self.dealias else n // 2
         kf = forcing_wavenumber
-        if kf is not None and not (1 <= kf <= min(cut, n // 2 - 1)):
-            raise ValueError(
-                f"forcing_wavenumber {kf} must be in 1..{min(cut, n // 2 - 1)} on a {n}² grid"
-                + (" with 2/3 dealiasing" if dealias else "")
+        if kf is not None:
+            kf = validate.integer(
+                name, "forcing_wavenumber", kf, ge=1, le=min(cut, n // 2 - 1),
+                why=f"or None, on a {n}² grid" + (" with 2/3 dealiasing" if self.dealias else ""),
             )
         self.forcing_wavenumber = kf
         self.k2 = kx**2 + ky**2
-        names, values = ["nu"], [float(nu)]
+        names, values = ["nu"], [nu]
         if kf is not None:
             names.append("forcing")
-            values.append(float(forcing_amplitude))
+            values.append(forcing_amplitude)
         if drag != 0:
             names.append("drag")
-            values.append(float(drag))
+            values.append(drag)
         self.param_names, self.param_values = tuple(names), tuple(values)
         self._pidx = np.array([names.index(k) if k in names else -1
                                for k in ("nu", "forcing", "drag")], dtype=np.int64)
@@ -413,9 +422,9 @@ class NavierStokes2D(Stepper):
         steps at Re 300–1000).
         """
         grids = {"reference": (128, 0.005), "coarse": (32, 0.02)}
-        if resolution not in grids:
-            raise ValueError(f"resolution must be one of {sorted(grids)}, not {resolution!r}")
-        n, dt = grids[resolution]
+        where = "ns2d kolmogorov_list_et_al"
+        n, dt = grids[validate.choice(where, "resolution", resolution, tuple(grids))]
+        re = validate.number(where, "re", re, gt=0, why="the Reynolds number, ν = 1/re")
         return cls._of_order(4)(
             n=n, nu=1.0 / re, dt=dt, forcing_wavenumber=6, forcing_amplitude=1.0
         )
@@ -424,6 +433,7 @@ class NavierStokes2D(Stepper):
     def kolmogorov_drag(cls, re: float = 1000.0, n: int = 64, dt: float = 0.01) -> NavierStokes2D:
         """Kolmogorov flow with forcing sin(4y) in x-momentum and linear drag μ = 0.1 (Kochkov
         et al.'s setup; ETDRK4 when called on the base class)."""
+        re = validate.number("ns2d kolmogorov_drag", "re", re, gt=0, why="ν = 1/re")
         return cls._of_order(4)(
             n=n, nu=1.0 / re, dt=dt, forcing_wavenumber=4, forcing_amplitude=1.0, drag=0.1
         )
@@ -435,14 +445,13 @@ class NavierStokes2D(Stepper):
 
     # -------------------------------------------------------------- contract
     def check_params(self, p: np.ndarray) -> None:
+        why = (
+            "L = −ν|k|² − μ is integrated exactly, so the linear part sets no Δt limit; the "
+            "explicit advection needs Courant number Δt max(|u|+|v|) n/2π ≲ 1, see courant_number"
+        )
         values = dict(zip(self.param_names, p))
-        if values["nu"] < 0 or values.get("drag", 0.0) < 0:
-            raise ValueError(
-                f"{self.name}: ν = {values['nu']:.4g} and μ = {values.get('drag', 0.0):.4g} must "
-                "be ≥ 0 (L = −ν|k|² − μ is integrated exactly, so the linear part sets no Δt "
-                "limit; the explicit advection needs Courant number Δt max(|u|+|v|) n/2π ≲ 1, "
-                "see courant_number)"
-            )
+        validate.number(self.name, "nu", values["nu"], ge=0, why=why)
+        validate.number(self.name, "drag", values.get("drag", 0.0), ge=0, why=why)
 
     def random_state(
         self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64

@@ -25,6 +25,7 @@ import scipy.fft
 from numba import njit, types
 from numba.extending import overload
 
+from .. import validate
 from ..grid import DIRICHLET, boundary_code, spacing
 from ..registry import register
 from ..stepper import Choice, Range, Stepper
@@ -160,30 +161,33 @@ class Poisson2D(Stepper):
     }
     control_shape = None
     param_names = ("kappa",)
+    #: smallest n per boundary condition: a 1-point periodic grid holds only the mean, which
+    #: the periodic solve drops
+    min_points = {"periodic": 2, "dirichlet": 1}
 
     def __init__(
         self, n: int = 16, bc: str = "periodic", length: float | None = None, kappa: float = 0.0
     ):
+        bc = validate.choice(self.name, "bc", bc, tuple(self.min_points))
         self.bc_code = boundary_code(bc)
-        if self.bc_code not in (DIRICHLET, boundary_code("periodic")):
-            raise ValueError(
-                f"poisson2d supports 'dirichlet' and 'periodic' boundaries, not {bc!r}"
-            )
         self.bc = bc
-        self.n = int(n)
+        self.n = validate.integer(
+            self.name, "n", n, ge=self.min_points[bc],
+            why=f"the smallest grid with {bc} boundaries",
+        )
         self.grid_shape = (self.n, self.n)
         self.channels = 1
         self.dt = 1.0
         if length is None:
             length = np.pi * (np.sqrt(2.0) if self.bc_code == DIRICHLET else 2.0)
-        self.length = float(length)
+        self.length = validate.number(self.name, "length", length, gt=0)
         self.h = spacing(self.n, self.length, bc)
         self.inv_h2 = 1.0 / self.h**2
         # Eigenvalues of the 1D −Δ_h: sine modes 1..n (Dirichlet), FFT order (periodic).
         k = np.arange(1, self.n + 1) if self.bc_code == DIRICHLET else np.arange(self.n)
         denominator = 2 * (self.n + 1) if self.bc_code == DIRICHLET else self.n
         self.eigenvalues = 4.0 * self.inv_h2 * np.sin(np.pi * k / denominator) ** 2
-        self.param_values = (float(kappa),)
+        self.param_values = (validate.number(self.name, "kappa", kappa),)
         self.check_params(np.array(self.param_values))
 
     @property
@@ -195,8 +199,8 @@ class Poisson2D(Stepper):
     def check_params(self, p: np.ndarray) -> None:
         if not p[0] > -self.smallest_eigenvalue:
             raise ValueError(
-                f"{self.name}: κ = {p[0]:.6g} makes −Δ_h + κ singular or indefinite; κ must "
-                f"exceed −λ_min = {-self.smallest_eigenvalue:.6g}"
+                f"{self.name}: kappa = κ = {p[0]:.6g} makes −Δ_h + κ singular or indefinite; "
+                f"κ must exceed −λ_min = {-self.smallest_eigenvalue:.6g}"
             )
 
     def _args(self) -> tuple:

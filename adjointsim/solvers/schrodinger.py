@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..grid import nodes, spacing
 from ..registry import register
 from ..stepper import Choice, Range, Stepper
@@ -178,37 +179,30 @@ class SchrodingerCN(Stepper):
         potential: str | np.ndarray | None = None,
         potential_strength: float = 1.0,
     ):
-        if not mass > 0:
-            raise ValueError(f"{self.name}: the mass must be positive, not {mass}")
-        self.n = int(n)
+        name = self.name
+        self.n = validate.integer(name, "n", n, ge=1)
         self.grid_shape = (self.n,)
         self.channels = 2
         self.control_shape = (1,)
-        self.length = float(length)
-        self.dt = float(dt)
-        self.mass = float(mass)
+        self.length = validate.number(name, "length", length, gt=0)
+        # Crank–Nicolson is stable for any Δt; Δt ≤ 0 would run backwards or stand still.
+        self.dt = validate.number(name, "dt", dt, gt=0)
+        self.mass = validate.number(name, "mass", mass, gt=0)
         self.h = spacing(self.n, self.length, "dirichlet")
         self.x = nodes(self.n, self.length, "dirichlet")
         self.kinetic = 1.0 / (2.0 * self.mass * self.h**2)
+        strength = validate.number(name, "potential_strength", potential_strength)
         if potential is None:
             self.potential = np.zeros(0)
             self.param_names, self.param_values = (), ()
         else:
             if isinstance(potential, str):
-                if potential != "harmonic":
-                    raise ValueError(
-                        f"{self.name}: unknown potential {potential!r}; use 'harmonic' or an array"
-                    )
+                validate.choice(name, "potential", potential, ("harmonic",), why="or an array")
                 profile = 0.5 * (self.x - 0.5 * self.length) ** 2
             else:
-                profile = np.asarray(potential, dtype=np.float64)
-                if profile.shape != self.grid_shape:
-                    raise ValueError(
-                        f"{self.name}: potential profile has shape {profile.shape}; "
-                        f"expected {self.grid_shape}"
-                    )
+                profile = validate.array(name, "potential", potential, self.grid_shape)
             self.potential = np.ascontiguousarray(profile)
-            self.param_names, self.param_values = ("potential",), (float(potential_strength),)
+            self.param_names, self.param_values = ("potential",), (strength,)
 
     def hamiltonian(
         self, control: float = 0.0, params: dict[str, float] | None = None

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..registry import register
 from ..spectral import fft1d
 from ..spectral.etdrk import etdrk_coefficient_derivatives, etdrk_coefficients
@@ -344,6 +345,8 @@ class ETDRKScene1D(Stepper):
     complex_step = False  # real FFTs cannot run complex arrays
     #: amplitude of :meth:`random_state`
     amplitude: float = 1.0
+    #: smallest (even) n: below 4 only the mean and the Nyquist mode are left
+    min_points: int = 4
 
     def __init__(
         self,
@@ -356,19 +359,18 @@ class ETDRKScene1D(Stepper):
         forcing: np.ndarray | None = None,
         forcing_amplitude: float = 1.0,
     ):
-        if n < 4 or n % 2:
-            raise ValueError(f"{self.name}: the grid size must be even and at least 4, not {n}")
-        if int(substeps) != substeps or substeps < 1:
-            raise ValueError(f"{self.name}: substeps must be a positive integer, not {substeps}")
-        if not dt > 0:
-            raise ValueError(f"{self.name}: dt must be positive, not {dt}")
-        self.grid_shape = (int(n),)
+        name = self.name
+        n = validate.integer(name, "n", n, ge=self.min_points, even=True, why="real FFT grid")
+        self.grid_shape = (n,)
         self.channels = 1
-        self.control_shape = (1, int(n))
-        self.length = float(length)
-        self.dt = float(dt)
-        self.substeps = int(substeps)
-        self.dealias = bool(dealias)
+        self.control_shape = (1, n)
+        self.length = validate.number(name, "length", length, gt=0)
+        # ETDRK integrates L exactly for any Δt > 0; Δt ≤ 0 would run backwards or stand still.
+        self.dt = validate.number(name, "dt", dt, gt=0)
+        self.substeps = validate.integer(name, "substeps", substeps, ge=1)
+        self.dealias = validate.flag(name, "dealias", dealias)
+        params = tuple(validate.number(name, k, p) for k, p in zip(self.linear_params, params))
+        amplitude = validate.number(name, "forcing_amplitude", forcing_amplitude)
         self.k = fft1d.wavenumbers(n, self.length)
         self.basis = [np.asarray(b) for b in self.linear_basis()]
         # N(u) = i·gi ⊙ rfft(u²), gi = −k/2 (zero at Nyquist), times the 2/3 mask if dealiased
@@ -377,16 +379,12 @@ class ETDRKScene1D(Stepper):
         )
         if forcing is None:
             self.forcing_hat = np.zeros(0, dtype=np.complex128)
-            self.param_names, self.param_values = self.linear_params, tuple(map(float, params))
+            self.param_names, self.param_values = self.linear_params, params
         else:
-            g = np.asarray(forcing, dtype=np.float64)
-            if g.shape != (1, n):
-                raise ValueError(
-                    f"{self.name}: forcing profile has shape {g.shape}; expected {(1, n)}"
-                )
+            g = validate.array(name, "forcing", forcing, (1, n))
             self.forcing_hat = np.fft.rfft(g[0])
             self.param_names = (*self.linear_params, "forcing")
-            self.param_values = (*map(float, params), float(forcing_amplitude))
+            self.param_values = (*params, amplitude)
         self.check_params(np.array(self.param_values))
         self._tableau = self._build_tableau()
         self._recording = False
@@ -585,11 +583,10 @@ class BurgersETDRK(ETDRKScene1D):
         return [-self.k**2]
 
     def check_params(self, p: np.ndarray) -> None:
-        if p[0] < 0:
-            raise ValueError(
-                f"{self.name}: the viscosity ν = {p[0]:.4g} must be ≥ 0 (ν < 0 is ill-posed: "
-                "exp(−ν k² Δt) grows without bound)"
-            )
+        validate.number(
+            self.name, "nu", p[0], ge=0,
+            why="the viscosity ν; ν < 0 is ill-posed: exp(−ν k² Δt) grows without bound",
+        )
 
 
 class AdvectionDiffusionETDRK(ETDRKScene1D):
@@ -625,8 +622,10 @@ class AdvectionDiffusionETDRK(ETDRKScene1D):
         return [-fft1d.derivative_multiplier(self.grid_shape[0], self.length, 1), -self.k**2]
 
     def check_params(self, p: np.ndarray) -> None:
-        if p[1] < 0:
-            raise ValueError(f"{self.name}: the viscosity ν = {p[1]:.4g} must be ≥ 0")
+        validate.number(
+            self.name, "nu", p[1], ge=0,
+            why="the viscosity ν; ν < 0 is ill-posed: exp(−ν k² Δt) grows without bound",
+        )
 
 
 def _register_orders(base: type, prefix: str, namespace: dict) -> dict[int, type]:
