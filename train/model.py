@@ -69,15 +69,22 @@ class NeuralStepper(nn.Module):
         return self.net(torch.cat([u, c], dim=1))
 
     def forward(
-        self, u: torch.Tensor, params: torch.Tensor, conditions: torch.Tensor
+        self, u: torch.Tensor, params: torch.Tensor, conditions: torch.Tensor, flow=None
     ) -> torch.Tensor:
+        """One step; ``flow`` (a :class:`train.unroll.GradientFlow`) stops gradients on the
+        state fed into the network (``flow.net``) and into the solver (``flow.phys``)."""
+        net, phys = (flow.net, flow.phys) if flow is not None else (_same, _same)
         if self.setup == "prediction":
-            return self._f(u, conditions)
+            return self._f(net(u), conditions)
         if self.correction == "parallel":
             groups = self.groups(params)
             steps = {stepper.dt for stepper, _ in groups}
             if len(steps) > 1:
                 raise ValueError(f"the parallel correction needs one Δt per batch, got {steps}")
-            return self.solve(u, params, groups) + steps.pop() * self._f(u, conditions)
-        v = self.solve(u, params)
-        return v + self._f(v, conditions)
+            return self.solve(phys(u), params, groups) + steps.pop() * self._f(net(u), conditions)
+        v = self.solve(phys(u), params)
+        return v + self._f(net(v), conditions)
+
+
+def _same(x: torch.Tensor) -> torch.Tensor:
+    return x
