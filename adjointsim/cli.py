@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -87,21 +88,53 @@ TORCH_COMMANDS = {
 }
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in TORCH_COMMANDS:
-        from train.cli import main as train_main
+class UserError(ValueError):
+    """A mistake in what the user gave (arguments, config, files): the CLI prints the message
+    on one line and exits 2. A ValueError, so library callers can catch it as one."""
 
-        return train_main(argv)
-    parser = build_parser()
-    parser.epilog = "torch commands (see adjointsim COMMAND --help): " + "; ".join(
-        f"{k}: {v}" for k, v in TORCH_COMMANDS.items()
-    )
-    args = parser.parse_args(argv)
+
+class ConfigTypeError(UserError, TypeError):
+    """A config value of the wrong type (the message names the key, the value and the type)."""
+
+
+class DamagedFileError(UserError):
+    """A file whose checksum does not match its contents (the message says how to recover)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C, carrying what a command's user should do to continue (its ``args[0]``)."""
+
+
+#: one line and exit 2 for these; anything else is a bug and keeps its traceback
+#: (``ADJOINTSIM_TRACEBACK=1`` shows it for these too)
+USER_ERRORS = (UserError, ValueError, KeyError, OSError)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The one error boundary of every command: user errors print ``adjointsim CMD: message``
+    and exit 2, Ctrl-C exits 130 with how to continue, genuine bugs raise."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = argv[0] if argv else ""
     try:
+        if command in TORCH_COMMANDS:
+            from train.cli import main as train_main
+
+            return train_main(argv)
+        parser = build_parser()
+        parser.epilog = "torch commands (see adjointsim COMMAND --help): " + "; ".join(
+            f"{k}: {v}" for k, v in TORCH_COMMANDS.items()
+        )
+        args = parser.parse_args(argv)
         return args.func(args)
-    except (KeyError, ValueError) as e:
-        print(f"adjointsim {args.command}: {e.args[0] if e.args else e}", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        hint = e.args[0] if e.args else "files are written atomically, so run the command again"
+        print(f"adjointsim {command}: interrupted; {hint}", file=sys.stderr)
+        return 130
+    except USER_ERRORS as e:
+        if os.environ.get("ADJOINTSIM_TRACEBACK"):
+            raise
+        message = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        print(f"adjointsim {command}: {' '.join(str(message).split())}", file=sys.stderr)
         return 2
 
 

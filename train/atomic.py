@@ -3,14 +3,19 @@
 The content goes to a temporary file beside the target, is flushed to disk, and is renamed
 over the target (``os.replace`` is atomic on POSIX and Windows). On failure the temporary file
 is removed and the target is left as it was.
+
+JSON goes through :func:`json_text`: never NaN or Infinity (they are not JSON).
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 
 @contextmanager
@@ -31,3 +36,32 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 def write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def json_text(obj: Any, indent: int | None = 2) -> str:
+    """Strict JSON of ``obj``: a non-finite float becomes null, and the object holding it (each
+    row of a top-level list) gets a ``"non_finite"`` note mapping its path to the value."""
+
+    def clean(x: Any, path: str, notes: dict) -> Any:
+        if isinstance(x, float) and not math.isfinite(x):
+            notes[path] = repr(x)
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v, f"{path}.{k}" if path else str(k), notes) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(v, f"{path}[{i}]", notes) for i, v in enumerate(x)]
+        return x
+
+    def note(x: Any) -> Any:
+        notes: dict = {}
+        out = clean(x, "", notes)
+        if notes:
+            out = {**out, "non_finite": notes} if isinstance(out, dict) else out
+        return out
+
+    rows = [note(r) for r in obj] if isinstance(obj, list) else note(obj)
+    return json.dumps(rows, indent=indent, allow_nan=False)
+
+
+def write_json(path: str | Path, obj: Any) -> None:
+    write_text(path, json_text(obj) + "\n")

@@ -1,28 +1,53 @@
-"""The torch commands of the ``adjointsim`` CLI: data, train, eval, study."""
+"""The torch commands of the ``adjointsim`` CLI: data, train, eval, study.
+
+Run them through :func:`adjointsim.cli.main`, the error boundary that turns user errors into
+one line; :func:`main` here only parses and dispatches.
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Sequence
 from dataclasses import fields
 from pathlib import Path
 
 from adjointsim.cli import TORCH_COMMANDS as COMMANDS
+from adjointsim.cli import Interrupted, UserError
+
+from .atomic import json_text, write_json
+
+
+def _at_least(lo: int):
+    """An argparse type: an integer ≥ lo."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < lo:
+            raise argparse.ArgumentTypeError(f"must be ≥ {lo}, not {value}")
+        return value
+
+    return parse
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser("data", help=COMMANDS["data"])
     d.add_argument("problem", choices=("ks", "kolmogorov"))
-    d.add_argument("--size", choices=("quick", "full"), default="quick")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--size", choices=("tiny", "quick", "full"), default="quick",
+                   help="tiny (KS only): seconds, for tests")
+    d.add_argument("--seed", type=_at_least(0), default=0)
     d.add_argument("--out", type=Path, default=None, help="default data/PROBLEM-SIZE.h5")
     d.set_defaults(func=_data)
 
     t = sub.add_parser("train", help=COMMANDS["train"])
     t.add_argument("--config", type=Path, default=None, help="TOML file of TrainConfig keys")
-    t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    again = t.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    again.add_argument("--overwrite", action="store_true",
+                       help="discard the run already in OUT and start again")
     from .trainer import TrainConfig
 
     for f in fields(TrainConfig):
@@ -38,8 +63,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("eval", help=COMMANDS["eval"])
     e.add_argument("run", type=Path, help="a training run directory")
     e.add_argument("--data", type=Path, default=None, help="default: the run's dataset")
-    e.add_argument("--horizon", type=int, default=None, help="12 for KS, 50 for Kolmogorov")
-    e.add_argument("--long-steps", type=int, default=500,
+    e.add_argument("--horizon", type=_at_least(1), default=None,
+                   help="12 for KS, 50 for Kolmogorov")
+    e.add_argument("--long-steps", type=_at_least(1), default=500,
                    help="length of the rollouts behind correlation time and stability")
     e.set_defaults(func=_eval)
 
@@ -50,14 +76,14 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="a reduced study (minutes); same as --size quick")
     s.add_argument("--size", default="full",
                    help="tiny (seconds, a smoke test of the whole pipeline), quick or full")
-    s.add_argument("--seeds", type=int, default=None)
-    s.add_argument("--jobs", type=int, default=2,
+    s.add_argument("--seeds", type=_at_least(1), default=None)
+    s.add_argument("--jobs", type=_at_least(1), default=2,
                    help="worker processes of the local cluster (one thread each; default 2)")
     s.add_argument("--cluster", default=None,
                    help="local (default: a Dask cluster of --jobs processes started here), none "
                    "(this process, one cell after another) or a scheduler address "
                    "tcp://HOST:PORT; default $DASK_SCHEDULER_ADDRESS if set, else local")
-    s.add_argument("--retries", type=int, default=1,
+    s.add_argument("--retries", type=_at_least(0), default=1,
                    help="times a failed cell is run again, resuming from its checkpoint")
     s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-SIZE]")
     s.add_argument("--json", type=Path, default=None, help="write one object per model here")
@@ -78,14 +104,26 @@ def _data(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     from .trainer import TrainConfig, build_model, describe, train
 
-    overrides = {k: v for k, v in vars(args).items() if k not in ("config", "resume", "func",
-                                                                  "command")}
+    overrides = {k: v for k, v in vars(args).items()
+                 if k not in ("config", "resume", "overwrite", "func", "command")}
     if overrides.get("curriculum"):
-        stages = (s.split(":") for s in overrides["curriculum"].split(","))
-        overrides["curriculum"] = [[int(m), float(lr)] for m, lr in stages]
+        text = overrides["curriculum"]
+        try:
+            stages = (s.split(":") for s in text.split(","))
+            overrides["curriculum"] = [[int(m), float(lr)] for m, lr in stages]
+        except ValueError:
+            raise UserError(f"--curriculum {text!r} is not a list of stages m:lr, e.g. "
+                            '"1:1e-4,2:1e-5"') from None
     cfg = TrainConfig.load(args.config, **overrides)
     print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
-    train(cfg, resume=args.resume)
+    try:
+        train(cfg, resume=args.resume, overwrite=args.overwrite)
+    except KeyboardInterrupt:
+        raise Interrupted(
+            f"continue from {Path(cfg.out) / 'checkpoint.pt'} (saved every "
+            f"{cfg.checkpoint_every} iterations) by running the same command with --resume"
+            + (" instead of --overwrite" if args.overwrite else "")
+        ) from None
     print(f"run in {cfg.out}")
     return 0
 
@@ -96,11 +134,17 @@ def _eval(args: argparse.Namespace) -> int:
     from .studies.list_et_al import STUDIES, load_model
     from .trainer import DTYPES
 
+    if not args.run.is_dir():
+        raise FileNotFoundError(f"{args.run} does not exist or is not a directory; give the "
+                                "--out directory of an `adjointsim train` run")
+    if not (args.run / "checkpoint.pt").exists():
+        raise FileNotFoundError(f"{args.run} holds no checkpoint.pt: not a training run, or one "
+                                "that saved nothing yet")
     model, cfg = load_model(args.run)
-    horizon = args.horizon or STUDIES[cfg.problem]["horizon"]
+    horizon = STUDIES[cfg.problem]["horizon"] if args.horizon is None else args.horizon
     metrics = evaluate(model, data.load(args.data or cfg.data), horizon, DTYPES[cfg.dtype],
                        args.run, args.long_steps)
-    print(json.dumps(metrics, indent=2))
+    print(json_text(metrics))
     return 0
 
 
@@ -121,11 +165,13 @@ def _study(args: argparse.Namespace) -> int:
                           report=False)
     except runner.CellsFailed as e:
         rows, failed = e.rows, e.failures
+    except KeyboardInterrupt:
+        raise Interrupted("run the same command again: finished cells are kept and the "
+                          "others resume from their checkpoints") from None
     if rows:
         print(runner.get_study(args.problem).report(rows, out.resolve()))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(runner.dumps(rows))
+        write_json(args.json, rows)
     for cell_id, error in failed:
         print(f"adjointsim study: cell {cell_id} failed: {error}", file=sys.stderr)
     if failed:
@@ -142,4 +188,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from adjointsim.cli import main as cli
+
+    sys.exit(cli())

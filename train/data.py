@@ -4,11 +4,16 @@ A dataset file holds one group per split (``train``, ``interpolation``, ``extrap
 ``trajectories`` (S, T, C, *coarse grid) float32, ``params`` (S,) and ``conditions`` (S,), and
 the problem's configuration as attributes. Files are written to a temporary name and renamed, so
 an interrupted run never leaves a half-written dataset behind.
+
+Every dataset in the file carries HDF5's Fletcher-32 checksum (format version 2), verified by
+HDF5 on every read: a flipped bit is reported as a damaged file with the command that
+regenerates it. Files of format version 1 (no checksums) still load, with a warning.
 """
 
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,10 +21,13 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
+from adjointsim.cli import DamagedFileError, UserError
+
 from .atomic import atomic_path
 from .problems import Problem, get_problem
 
-FORMAT_VERSION = 1
+#: 2: every dataset has a Fletcher-32 checksum; 1: none (loaded with a warning)
+FORMAT_VERSION = 2
 
 
 @dataclass
@@ -98,10 +106,12 @@ def save(dataset: Dataset, path: str | Path) -> Path:
         f.attrs["config"] = json.dumps(_scene_config(dataset.problem, dataset.size))
         for name, split in dataset.splits.items():
             g = f.create_group(name)
-            g.create_dataset("trajectories", data=split.trajectories)
-            g.create_dataset("params", data=split.params)
-            g.create_dataset("conditions", data=split.conditions)
+            for key in ARRAYS:
+                g.create_dataset(key, data=getattr(split, key), fletcher32=True)
     return path
+
+
+ARRAYS = ("trajectories", "params", "conditions")
 
 
 def load(path: str | Path) -> Dataset:
@@ -112,37 +122,58 @@ def load(path: str | Path) -> Dataset:
         raise FileNotFoundError(f"no dataset at {path}; create it with `adjointsim data PROBLEM`")
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("format_version") != FORMAT_VERSION:
-                raise ValueError(
-                    f"{path} has format version {f.attrs.get('format_version')}, expected "
-                    f"{FORMAT_VERSION}; {fix}"
+            version = f.attrs.get("format_version")
+            if version not in (1, FORMAT_VERSION):
+                raise UserError(
+                    f"{path} has format version {version}, expected {FORMAT_VERSION}; {fix}"
                 )
             problem = get_problem(str(f.attrs["problem"]))
             size = str(f.attrs["size"])
+            seed = int(f.attrs["seed"])
+            seed_flag = f" --seed {seed}" if seed else ""
+            fix = (f"delete it and regenerate it with `adjointsim data {problem.name} --size "
+                   f"{size}{seed_flag} --out {path}`")
             if json.loads(f.attrs["config"]) != _scene_config(problem, size):
-                raise ValueError(
+                raise UserError(
                     f"{path} was made with another configuration of the {problem.name!r} "
                     f"problem than this version's; {fix}"
                 )
+            if version == 1:
+                warnings.warn(f"{path} predates checksums (format version 1), so damage to it "
+                              f"cannot be detected; to get them, {fix}", stacklevel=2)
             splits = {}
             for name in problem.splits:
-                g = f[name]
-                split = Split(g["trajectories"][...], g["params"][...], g["conditions"][...])
+                arrays = []
+                for key in ARRAYS:
+                    d = f[name][key]
+                    if version == FORMAT_VERSION and not d.fletcher32:
+                        raise DamagedFileError(f"{path}: {name}/{key} has no checksum; {fix}")
+                    try:
+                        arrays.append(d[...])
+                    except OSError:  # HDF5's checksum failed (or the chunk is unreadable)
+                        raise DamagedFileError(
+                            f"{path} is damaged: the checksum of {name}/{key} does not match "
+                            f"its contents (a flipped bit on disk or an edited file); {fix}"
+                        ) from None
+                split = Split(*arrays)
                 s = split.trajectories.shape[0]
                 if split.params.shape != (s,) or split.conditions.shape != (s,):
-                    raise ValueError(f"{path}: split {name!r} has inconsistent shapes; {fix}")
+                    raise DamagedFileError(f"{path}: split {name!r} has inconsistent shapes; {fix}")
                 if not np.all(np.isfinite(split.trajectories)):
-                    raise ValueError(f"{path}: split {name!r} holds non-finite values; {fix}")
+                    raise DamagedFileError(f"{path}: split {name!r} holds non-finite values; {fix}")
                 splits[name] = split
-            return Dataset(problem, size, int(f.attrs["seed"]), splits)
+            return Dataset(problem, size, seed, splits)
     except (OSError, KeyError) as e:
-        raise ValueError(f"{path} is not a readable adjointsim dataset ({e}); {fix}") from None
+        raise DamagedFileError(
+            f"{path} is not a readable adjointsim dataset ({e}); {fix}"
+        ) from None
 
 
 def windows(split: Split, length: int, stride: int = 1) -> np.ndarray:
     """(trajectory, start frame) pairs of every window of ``length`` frames."""
     s, t = split.trajectories.shape[:2]
     if length > t:
-        raise ValueError(f"windows of {length} frames do not fit trajectories of {t} frames")
+        raise UserError(f"windows of {length} frames (unroll + warmup + 1) do not fit the "
+                        f"dataset's {t}-frame trajectories: unroll + warmup can be at most {t - 1}")
     starts = np.arange(0, t - length + 1, stride)
     return np.stack(np.meshgrid(np.arange(s), starts, indexing="ij"), -1).reshape(-1, 2)

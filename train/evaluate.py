@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from adjointsim import NonFiniteInputError, NonFiniteStateError
+from adjointsim.cli import UserError
 
 from .data import Dataset, Split
 from .model import NeuralStepper
@@ -125,7 +126,17 @@ def evaluate(
     plots: Path | None = None,
     long_steps: int = 500,
 ) -> dict:
-    """Metrics per test split and over all test rollouts; optional plots in ``plots``."""
+    """Metrics per test split and over all test rollouts; optional plots in ``plots``.
+
+    The horizon must fit the test trajectories, and ``long_steps`` (capped by their length)
+    must be at least the horizon. A metric is inf when a rollout blew up within the horizon.
+    """
+    longest = min(dataset.splits[name].trajectories.shape[1] for name in TEST_SPLITS) - 1
+    if not 1 <= horizon <= longest:
+        raise UserError(f"the horizon must be between 1 and {longest} steps (the length of the "
+                        f"dataset's test trajectories), not {horizon}")
+    if long_steps < horizon:
+        raise UserError(f"long_steps ({long_steps}) must be at least the horizon ({horizon})")
     results: dict = {}
     errors, coarse_errors, corr_times, stable = [], [], [], []
     for name in TEST_SPLITS:

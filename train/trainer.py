@@ -4,34 +4,106 @@ A run lives in one directory: ``config.json``, ``checkpoint.pt`` (written atomic
 ``checkpoint_every`` iterations and at the end), ``history.csv`` and ``training.png``. A run
 started again with ``resume=True`` continues from its checkpoint at the same stage, epoch and
 batch, with the optimiser, the gradient-spike statistics and the data order restored, so it
-ends with the same weights as an uninterrupted run.
+ends with the same weights as an uninterrupted run. A run directory that already holds a run is
+refused unless the call says ``resume`` or ``overwrite``.
+
+Every value of a :class:`TrainConfig` is checked for its type and its accepted range
+(:data:`ACCEPTED`). A checkpoint carries the SHA-256 digest of its contents (every tensor's
+bytes, dtype and shape, and every other value), verified when it is loaded; checkpoints from
+before digests load with a warning and get one at their next save.
 """
 
 from __future__ import annotations
 
 import csv
+import difflib
+import hashlib
 import json
 import math
 import tomllib
+import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, get_type_hints
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from adjointsim.cli import ConfigTypeError, DamagedFileError, UserError
 from nets import DilatedResNet, ResNet, UNet, parameter_count
 
 from . import data as datamod
 from .atomic import atomic_path, write_text
 from .evaluate import BLOW_UPS
-from .model import NeuralStepper
-from .problems import get_problem
-from .unroll import MODES, unrolled_loss
+from .model import CORRECTIONS, SETUPS, NeuralStepper
+from .problems import PROBLEMS, get_problem
+from .unroll import MODES, GradientFlow, unrolled_loss
 
 CONV_NETS = {"resnet": ResNet, "dilated": DilatedResNet, "unet": UNet}
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+@dataclass(frozen=True)
+class Interval:
+    """Accepted numbers: lo ≤ x ≤ hi (open ends excluded), always finite."""
+
+    lo: float
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def __contains__(self, x: float) -> bool:
+        return (math.isfinite(x) and (x > self.lo if self.lo_open else x >= self.lo)
+                and (x < self.hi if self.hi_open else x <= self.hi))
+
+    def __str__(self) -> str:
+        if self.hi == math.inf:
+            return f"{'>' if self.lo_open else '≥'} {_num(self.lo)}"
+        return (f"in {'(' if self.lo_open else '['}{_num(self.lo)}, {_num(self.hi)}"
+                f"{')' if self.hi_open else ']'}")
+
+
+def _num(x: float) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
+#: the accepted values of every TrainConfig field: choices, an Interval, or (data, out,
+#: curriculum) checked by their own rule in TrainConfig.validate
+ACCEPTED: dict[str, tuple | Interval | str] = {
+    "problem": tuple(PROBLEMS),
+    "data": "a non-empty path",
+    "out": "a non-empty path",
+    "setup": SETUPS,
+    "correction": CORRECTIONS,
+    "mode": MODES,
+    "unroll": Interval(1),
+    "curriculum": "a list of [m, lr] pairs, m ≥ 1 and lr in (0, 1]",
+    "net": tuple(CONV_NETS),
+    "width": Interval(1),
+    "blocks": Interval(1),
+    "dtype": tuple(DTYPES),
+    # Adam steps beyond 1 are no longer a learning rate but a divergence.
+    "lr": Interval(0, 1, lo_open=True),
+    # The rate is multiplied by lr_decay every lr_decay_every iterations: ≤ 0 would flip the
+    # sign of the update (gradient ascent), > 1 makes it grow without bound; 1 keeps it fixed.
+    "lr_decay": Interval(0, 1, lo_open=True),
+    "lr_decay_every": Interval(1),
+    "batch": Interval(1),
+    "epochs": Interval(0, lo_open=True),
+    "stride": Interval(1),
+    "warmup": Interval(0),
+    "truncate": Interval(0),
+    # An update is skipped when its gradient norm exceeds spike_factor × the running mean:
+    # at ≤ 1 every update above the mean would be skipped. Use a large value to disable it.
+    "spike_factor": Interval(1, lo_open=True),
+    "checkpoint_every": Interval(1),
+    # numpy's SeedSequence takes non-negative integers, torch.manual_seed up to 2⁶⁴ − 1.
+    "seed": Interval(0, 2**63 - 1),
+    "threads": Interval(1),
+    "max_iterations": Interval(0),
+}
+_TYPE_NAMES = {int: "an integer", float: "a finite number", str: "a string", list: "a list"}
 
 
 @dataclass
@@ -69,47 +141,71 @@ class TrainConfig:
 
     @classmethod
     def load(cls, path: str | Path | None = None, **overrides: Any) -> TrainConfig:
-        """A config from a TOML file (optional) with keyword overrides; unknown keys fail."""
+        """A config from a TOML file (optional) with keyword overrides (None means unset);
+        unknown keys, wrong types and values outside :data:`ACCEPTED` fail naming the key."""
         values: dict[str, Any] = {}
         if path is not None:
-            with open(path, "rb") as f:
-                values.update(tomllib.load(f))
+            try:
+                with open(path, "rb") as f:
+                    values.update(tomllib.load(f))
+            except FileNotFoundError:
+                raise FileNotFoundError(f"no config file at {path}") from None
+            except tomllib.TOMLDecodeError as e:
+                raise UserError(f"{path} is not valid TOML: {e}") from None
         values.update({k: v for k, v in overrides.items() if v is not None})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown config option(s) {unknown}; known: {sorted(known)}")
+        known = [f.name for f in fields(cls)]
+        for key in values:
+            if key not in known:
+                close = difflib.get_close_matches(key, known, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise UserError(f"unknown config option {key!r}{hint}; valid options: "
+                                f"{', '.join(known)}")
         cfg = cls(**values)
-        cfg.validate()
+        cfg.validate(f" in {path}" if path is not None else "")
         return cfg
 
-    def validate(self) -> None:
-        get_problem(self.problem)
-        if self.mode not in MODES:
-            raise ValueError(f"unknown mode {self.mode!r}; choose from {MODES}")
-        if self.net not in CONV_NETS:
-            raise ValueError(f"unknown net {self.net!r}; choose from {sorted(CONV_NETS)}")
-        if self.dtype not in DTYPES:
-            raise ValueError(f"dtype must be one of {sorted(DTYPES)}, not {self.dtype!r}")
-        for name in ("warmup", "truncate"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be ≥ 0, not {getattr(self, name)}")
-        for name in ("unroll", "batch", "stride", "lr_decay_every", "checkpoint_every", "threads",
-                     "width", "blocks"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be ≥ 1, not {getattr(self, name)}")
-        if self.epochs <= 0 or self.lr <= 0:
-            raise ValueError(f"epochs and lr must be > 0, not {self.epochs} and {self.lr}")
+    def validate(self, where: str = "") -> None:
+        """Check every field's type and range; ints given for float fields become floats."""
+        hints = get_type_hints(type(self))
+        for f in fields(self):
+            key, value, expected = f.name, getattr(self, f.name), hints[f.name]
+            if expected is float and type(value) is int:
+                value = float(value)
+                setattr(self, key, value)
+            # bool is an int to Python, never to a config
+            if not isinstance(value, expected) or isinstance(value, bool):
+                raise ConfigTypeError(
+                    f"config key {key!r}{where}: {value!r} ({type(value).__name__}) is not "
+                    f"{_TYPE_NAMES[expected]}; accepted: {_accepted(key)}"
+                )
+            rule = ACCEPTED.get(key)  # tests/test_cli.py checks that every field has one
+            if isinstance(rule, tuple) and value not in rule:
+                raise UserError(f"config key {key!r}{where}: {value!r} is not one of "
+                                f"{', '.join(rule)}")
+            if isinstance(rule, Interval) and value not in rule:
+                raise UserError(f"config key {key!r}{where}: {value!r} is not {_accepted(key)}")
+            if isinstance(rule, str) and expected is str and not value:
+                raise UserError(f"config key {key!r}{where}: needs {rule}")
         for stage in self.curriculum:
-            if not (isinstance(stage, list | tuple) and len(stage) == 2):
-                raise ValueError(f"curriculum stage {stage!r} is not an [m, lr] pair")
-        for m, lr in self.stages():
-            if m < 1 or lr <= 0:
-                raise ValueError(f"curriculum stage (m={m}, lr={lr}) needs m ≥ 1 and lr > 0")
+            ok = (isinstance(stage, list | tuple) and len(stage) == 2
+                  and type(stage[0]) is int and type(stage[1]) in (int, float)
+                  and stage[0] >= 1 and stage[1] in ACCEPTED["lr"])
+            if not ok:
+                raise UserError(f"config key 'curriculum'{where}: stage {stage!r} is not an "
+                                f"[m, lr] pair with m an integer ≥ 1 and lr {ACCEPTED['lr']}")
 
     def stages(self) -> list[tuple[int, float]]:
         stages = [(int(m), float(lr)) for m, lr in self.curriculum] or [(self.unroll, self.lr)]
         return stages
+
+
+def _accepted(key: str) -> str:
+    rule = ACCEPTED[key]
+    if isinstance(rule, tuple):
+        return "one of " + ", ".join(rule)
+    if isinstance(rule, Interval):
+        return f"{_TYPE_NAMES[get_type_hints(TrainConfig)[key]]} {rule}"
+    return rule
 
 
 def build_model(cfg: TrainConfig) -> NeuralStepper:
@@ -139,30 +235,115 @@ def _plan(cfg: TrainConfig, n_windows_fn) -> list[dict]:
     return plan
 
 
+#: what a run directory holds besides config.json: replaced by ``overwrite``
+RUN_FILES = ("checkpoint.pt", "history.csv", "training.png", "results.json", "rollout-*.png")
+_RECOVER = ("copy an intact run directory over it and continue with --resume, or train again "
+            "from scratch with --overwrite")
+
+
+def _digest(payload: Any) -> str:
+    """SHA-256 of a checkpoint's contents: each tensor's dtype, shape and bytes, and the repr of
+    every other value, in order (pickling round-trips both exactly)."""
+    h = hashlib.sha256()
+
+    def walk(x: Any) -> None:
+        if isinstance(x, torch.Tensor):
+            t = x.detach().cpu().contiguous()
+            h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy())
+        elif isinstance(x, dict):
+            h.update(b"{")
+            for k, v in x.items():
+                walk(k)
+                walk(v)
+            h.update(b"}")
+        elif isinstance(x, list | tuple):
+            h.update(b"[" if isinstance(x, list) else b"(")
+            for v in x:
+                walk(v)
+            h.update(b"]")
+        else:
+            h.update(repr(x).encode() + b";")
+
+    walk(payload)
+    return h.hexdigest()
+
+
+def save_checkpoint(payload: dict, path: str | Path) -> None:
+    """Write atomically, with the digest :func:`load_checkpoint` verifies."""
+    with atomic_path(path) as tmp:
+        torch.save({**payload, "sha256": _digest(payload)}, tmp)
+
+
 def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint and verify its digest; a damaged one gets an error saying what to do."""
     path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # torch raises many types for damaged files
-        raise ValueError(
-            f"{path} is not a readable checkpoint ({type(e).__name__}: {e}); delete it and "
-            "train again, or resume from an intact copy"
+        raise DamagedFileError(
+            f"{path} is not a readable checkpoint ({type(e).__name__}: {e}); {_RECOVER}"
         ) from None
+    if not isinstance(ckpt, dict) or "model" not in ckpt:
+        raise DamagedFileError(f"{path} is not an adjointsim checkpoint; {_RECOVER}")
+    digest = ckpt.pop("sha256", None)
+    if digest is None:
+        warnings.warn(f"{path} has no digest (written before checkpoints had one), so damage "
+                      "to it cannot be detected; it gets one when the run saves again",
+                      stacklevel=2)
+    elif digest != _digest(ckpt):
+        raise DamagedFileError(
+            f"{path} is damaged: its contents do not match the SHA-256 digest stored with them "
+            f"(a flipped bit on disk or an edited file); {_RECOVER}"
+        )
+    return ckpt
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> NeuralStepper:
-    """Train a model as configured; returns it (also saved in ``cfg.out``)."""
+def _claim(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse a directory holding another run unless told to resume or overwrite it."""
+    if resume and overwrite:
+        raise UserError("--resume continues a run and --overwrite discards it: pass one")
+    ckpt_path = out / "checkpoint.pt"
+    if resume or overwrite or not (ckpt_path.exists() or (out / "config.json").exists()):
+        return
+    what = "a run that saved no checkpoint yet"
+    if ckpt_path.exists():
+        try:
+            state = load_checkpoint(ckpt_path)["state"]
+            what = (f"a finished run ({state['total']} iterations)" if state.get("finished") else
+                    f"an unfinished run (stopped after {state['total']} iterations)")
+        except (UserError, KeyError):
+            what = "a run whose checkpoint cannot be read"
+    raise UserError(f"{out} already holds {what}; continue it with --resume, train into a new "
+                    "--out, or start it again with --overwrite")
+
+
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
+          overwrite: bool = False) -> NeuralStepper:
+    """Train a model as configured; returns it (also saved in ``cfg.out``).
+
+    A ``cfg.out`` that already holds a run is refused unless ``resume`` (continue it from its
+    checkpoint; a run without one starts over) or ``overwrite`` (discard it) is given.
+    """
+    cfg.validate()
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
+    _claim(out, resume, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     dataset = datamod.load(cfg.data)
     if dataset.problem.name != cfg.problem:
-        raise ValueError(f"{cfg.data} holds {dataset.problem.name!r} data, not {cfg.problem!r}")
+        raise UserError(f"{cfg.data} holds {dataset.problem.name!r} data, not {cfg.problem!r}")
     split = dataset.splits["train"]
     frames_all = torch.from_numpy(split.trajectories).to(DTYPES[cfg.dtype])
     params_all = torch.from_numpy(split.params)
     cond_all = torch.from_numpy(split.conditions)
     plan = _plan(cfg, lambda length: len(datamod.windows(split, length, cfg.stride)))
+    if overwrite:  # only now that the new run is known to start
+        for pattern in RUN_FILES:
+            for old in out.glob(pattern):
+                old.unlink()
 
     model = build_model(cfg)
     optimizer = torch.optim.Adam(model.parameters(), lr=plan[0]["lr"])
@@ -171,18 +352,21 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
     ckpt_path = out / "checkpoint.pt"
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
-        if ckpt["config"] != asdict(cfg) | {"max_iterations": ckpt["config"]["max_iterations"]}:
-            raise ValueError(f"{ckpt_path} was written with another configuration; use a new --out")
+        ours = asdict(cfg) | {"max_iterations": ckpt["config"]["max_iterations"]}
+        if ckpt["config"] != ours:
+            differ = sorted(k for k in ours.keys() | ckpt["config"].keys()
+                            if ours.get(k) != ckpt["config"].get(k))
+            raise UserError(f"{ckpt_path} was written with another configuration (differs in "
+                            f"{', '.join(differ)}); train into a new --out or use --overwrite")
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         state, history = ckpt["state"], ckpt["history"]
     write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
 
     def save() -> None:
-        with atomic_path(ckpt_path) as tmp:
-            torch.save({"config": asdict(cfg), "model": model.state_dict(),
-                        "optimizer": optimizer.state_dict(), "state": state,
-                        "history": history}, tmp)
+        save_checkpoint({"config": asdict(cfg), "model": model.state_dict(),
+                         "optimizer": optimizer.state_dict(), "state": state,
+                         "history": history}, ckpt_path)
 
     total_iterations = sum(s["iterations"] for s in plan)
     bar = tqdm(total=total_iterations, initial=state["total"], desc=f"train {cfg.mode}",
@@ -211,11 +395,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Neur
                 group["lr"] = lr
             optimizer.zero_grad(set_to_none=True)
             try:
-                loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], cfg.mode,
+                flow = GradientFlow(cfg.mode)
+                loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], flow,
                                      cfg.warmup, cfg.truncate)
                 skipped = not torch.isfinite(loss)
                 if not skipped:
-                    loss.backward()
+                    flow.backward(loss, list(model.parameters()))
             except BLOW_UPS:  # the coarse solver refused a state the model made
                 loss, skipped = torch.tensor(float("nan")), True
             if not skipped:
