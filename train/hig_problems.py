@@ -1,0 +1,470 @@
+"""The half-inverse gradients problems, their training loop and ``adjointsim hig``.
+
+Problems (settings from ``shared/papers/hig.md``; deviations are marked):
+
+* ``oscillators``: 2 coupled nonlinear oscillators (``oscillators-rk4``, Δt = 0.125, 96 steps),
+  x ~ U[0, 1)⁴, the network 4 → 20 ×3 (ReLU) → 96 controls must bring the state back to x;
+  loss ‖y − x‖². Adam batch 512, lr 3e-4; HIG and GN batch 128, lr 1, τ = 1e-6.
+* ``quantum``: ``schrodinger1d-cn``, 14 interior points on (0, 2), m = ½ (H = −∂xx + u x),
+  Δt = 0.05, 384 steps, from the ground state to a random normalised real superposition of
+  the eigenstates 2 and 3; loss 1 − |⟨ψ*|ψ_T⟩|². Network 28 → 20 ×3 (tanh) → 384. Adam batch
+  256, lr 5e-4; HIG batch 16, lr 0.5, τ = 1e-5; GN (not given by the paper) as HIG.
+* ``poisson``: 8×8, zero Dirichlet, the 5-point Laplacian of ``poisson2d``. Smooth fields
+  x* = A⁻² n (A = −Δ_h, n white noise, two ``poisson2d`` solves), y = Δ_h x*; the network
+  64 → 64 → 128 → 64 → 64 (tanh) maps y to x̂, loss ‖Δ_h x̂ − y‖², fresh samples every step.
+  Adam batch 64, lr 3e-4; HIG lr 0.01, τ = 1e-5. Deviation: HIG and GN use batch 4, not 64:
+  at 64 the Jacobian is 4096 × 24896 (815 MB) and one SVD takes minutes on one core.
+* ``chain``: the PBDL book's linear chain (2 masses, coupling 0.2, RK4, Δt = 0.5, 24 steps),
+  network 4 → 20 ×3 (tanh) → 24; HIG batch 32, lr 1, τ = 1e-10; Adam batch 256, lr 1e-3;
+  GN as HIG; 100 s budget.
+
+Timing follows the reference: the wall-clock of a run is the summed time of its updates
+(derivatives, SVD, apply); drawing batches and evaluating the test loss are excluded. Test
+losses are evaluated at wall-clock marks spaced by a factor 1.25 (and at the end).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from adjointsim.solvers.oscillators import Oscillators
+from adjointsim.solvers.poisson import Poisson2D
+from adjointsim.solvers.schrodinger import SchrodingerCN
+from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
+
+from .atomic import atomic_path, write_text
+from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
+
+PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
+OPTIMIZERS = ("adam", "gn", "hig")
+DTYPE = torch.float64
+#: default time budgets (s): the paper's hour is out of reach on a shared 2-core machine
+BUDGETS = {"oscillators": 600.0, "quantum": 600.0, "poisson": 600.0, "chain": 100.0}
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # network input, physics context, target
+
+
+@dataclass
+class Problem:
+    name: str
+    model: Callable[[], torch.nn.Module]
+    physics: SolverPhysics | TorchPhysics
+    loss: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    #: draws a training batch of the given size from a torch generator
+    sample: Callable[[torch.Generator, int], Batch]
+    test: Batch
+    #: per optimizer: batch, lr and (HIG/GN) tau
+    settings: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def mlp(sizes: list[int], act: type[torch.nn.Module]) -> torch.nn.Module:
+    layers: list[torch.nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(torch.nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(act())
+    return torch.nn.Sequential(*layers).to(DTYPE)
+
+
+def _squared_error(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return ((y - target) ** 2).sum(dim=1)
+
+
+def _from_dataset(x: torch.Tensor, context: torch.Tensor, target: torch.Tensor):
+    def sample(gen: torch.Generator, batch: int) -> Batch:
+        idx = torch.randperm(x.shape[0], generator=gen)[:batch]
+        return x[idx], context[idx], target[idx]
+
+    return sample
+
+
+def _oscillator_problem(stepper: Oscillators, steps: int, act, n_train: int, n_test: int,
+                        seed: int, settings: dict) -> tuple:
+    rng = np.random.default_rng(seed)
+    train = torch.from_numpy(rng.random((n_train, 4)))
+    test = torch.from_numpy(rng.random((n_test, 4)))
+    physics = SolverPhysics(stepper, steps, lambda c: c.reshape(-1, 2, 2))
+    return Problem(
+        name="",
+        model=lambda: mlp([4, 20, 20, 20, steps], act),
+        physics=physics,
+        loss=_squared_error,
+        sample=_from_dataset(train, train, train),
+        test=(test, test, test),
+        settings=settings,
+    )
+
+
+def _quantum(seed: int, n_data: int) -> Problem:
+    s = SchrodingerCN(n=14, length=2.0, dt=0.05, mass=0.5)
+    steps = 384
+
+    def mode(k: int) -> np.ndarray:
+        m = np.sin(k * np.pi * s.x / s.length)
+        return m / np.sqrt(s.h * np.sum(m**2))
+
+    ground = torch.from_numpy(np.stack([mode(1), np.zeros(s.n)]))
+    rng = np.random.default_rng(seed)
+
+    def targets(count: int) -> torch.Tensor:
+        c = rng.standard_normal((count, 2))
+        c /= np.linalg.norm(c, axis=1, keepdims=True)
+        psi = c[:, :1] * mode(2) + c[:, 1:] * mode(3)
+        return torch.from_numpy(np.concatenate([psi, np.zeros_like(psi)], axis=1))
+
+    def infidelity(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        n = s.n
+        yr, yi, tr, ti = y[:, :n], y[:, n:], target[:, :n], target[:, n:]
+        re = s.h * (tr * yr + ti * yi).sum(dim=1)
+        im = s.h * (tr * yi - ti * yr).sum(dim=1)
+        return 1.0 - (re**2 + im**2)
+
+    train, test = targets(n_data), targets(n_data)
+    empty = torch.zeros(n_data, 0, dtype=DTYPE)
+    physics = SolverPhysics(s, steps, lambda c: ground.expand(c.shape[0], 2, s.n))
+    return Problem(
+        name="quantum",
+        model=lambda: mlp([2 * s.n, 20, 20, 20, steps], torch.nn.Tanh),
+        physics=physics,
+        loss=infidelity,
+        sample=_from_dataset(train, empty, train),
+        test=(test, empty, test),
+        settings={
+            "adam": {"batch": 256, "lr": 5e-4},
+            "hig": {"batch": 16, "lr": 0.5, "tau": 1e-5},
+            "gn": {"batch": 16, "lr": 0.5, "tau": 1e-5},
+        },
+    )
+
+
+def laplacian(x: torch.Tensor, inv_h2: float, n: int) -> torch.Tensor:
+    """The 5-point Δ_h with zero Dirichlet boundaries on flattened n × n fields (b, n²)."""
+    u = torch.nn.functional.pad(x.reshape(-1, 1, n, n), (1, 1, 1, 1))
+    c = u[..., 1:-1, 1:-1]
+    lap = u[..., :-2, 1:-1] + u[..., 2:, 1:-1] + u[..., 1:-1, :-2] + u[..., 1:-1, 2:] - 4 * c
+    return (inv_h2 * lap).reshape(x.shape[0], n * n)
+
+
+def _poisson(seed: int, n_test: int) -> Problem:
+    solver = Poisson2D(n=8, bc="dirichlet")
+    n = solver.n
+
+    def fields(rng: np.random.Generator, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+        noise = rng.standard_normal((count, 1, n, n))
+        once = solver.solve(noise)  # A⁻¹ n
+        x = torch.from_numpy(solver.solve(once).reshape(count, n * n))  # smooth x* = A⁻² n
+        return x, torch.from_numpy(-once.reshape(count, n * n))  # y = Δ_h x* = −A⁻¹ n
+
+    test_x, test_y = fields(np.random.default_rng(seed), n_test)
+
+    pool: list[torch.Tensor] = []
+
+    def sample(gen: torch.Generator, batch: int) -> Batch:
+        # Fresh fields every step, made 4096 at a time: one solve per field is dearer than the
+        # update itself at this size.
+        if not pool or pool[0].shape[0] < batch:
+            rng = np.random.default_rng(int(torch.randint(2**62, (1,), generator=gen)))
+            pool[:] = [fields(rng, max(4096, batch))[1]]
+        y, pool[0] = pool[0][:batch], pool[0][batch:]
+        return y, torch.zeros(batch, 0, dtype=DTYPE), y
+
+    physics = TorchPhysics(lambda f, _c: laplacian(f, solver.inv_h2, n))
+    return Problem(
+        name="poisson",
+        model=lambda: mlp([n * n, 64, 128, 64, n * n], torch.nn.Tanh),
+        physics=physics,
+        loss=_squared_error,
+        sample=sample,
+        test=(test_y, torch.zeros(n_test, 0, dtype=DTYPE), test_y),
+        settings={
+            "adam": {"batch": 64, "lr": 3e-4},
+            "hig": {"batch": 4, "lr": 0.01, "tau": 1e-5},
+            "gn": {"batch": 4, "lr": 0.01, "tau": 1e-5},
+        },
+    )
+
+
+def make_problem(name: str, seed: int, size: str = "full") -> Problem:
+    """Problem ``name`` with data drawn from ``seed``; ``size="tiny"`` shrinks the data sets
+    (tests and the study's smoke size), nothing else."""
+    if name not in PROBLEMS:
+        raise ValueError(f"unknown HIG problem {name!r}; choose one of {', '.join(PROBLEMS)}")
+    if size not in ("tiny", "quick", "full"):
+        raise ValueError(f"size must be tiny, quick or full, not {size!r}")
+    tiny = size == "tiny"
+    if name == "oscillators":
+        p = _oscillator_problem(
+            Oscillators(), 96, torch.nn.ReLU, 256 if tiny else 4096, 256 if tiny else 4096, seed,
+            {"adam": {"batch": 512, "lr": 3e-4}, "hig": {"batch": 128, "lr": 1.0, "tau": 1e-6},
+             "gn": {"batch": 128, "lr": 1.0, "tau": 1e-6}},
+        )
+    elif name == "chain":
+        p = _oscillator_problem(
+            Oscillators.linear_chain(), 24, torch.nn.Tanh, 256 if tiny else 4096,
+            256 if tiny else 4096, seed,
+            {"adam": {"batch": 256, "lr": 1e-3}, "hig": {"batch": 32, "lr": 1.0, "tau": 1e-10},
+             "gn": {"batch": 32, "lr": 1.0, "tau": 1e-10}},
+        )
+    elif name == "quantum":
+        p = _quantum(seed, 64 if tiny else 1024)
+    else:
+        p = _poisson(seed, 64 if tiny else 1024)
+    p.name = name
+    return p
+
+
+def test_loss(problem: Problem, model: torch.nn.Module) -> float:
+    """Mean per-sample loss on the test set; inf when the physics blows up."""
+    x, c, t = problem.test
+    with torch.no_grad():
+        try:
+            value = float(problem.loss(problem.physics(model(x), c), t).mean())
+        except (NonFiniteStateError, NonFiniteInputError):
+            return math.inf
+    return value if math.isfinite(value) else math.inf
+
+
+# --------------------------------------------------------------------------- training runs
+@dataclass(frozen=True)
+class RunConfig:
+    problem: str
+    optimizer: str
+    seed: int = 0
+    budget: float = 60.0
+    size: str = "full"
+    max_updates: int | None = None
+
+    def validate(self) -> None:
+        if self.problem not in PROBLEMS:
+            raise ValueError(f"unknown problem {self.problem!r}; choose one of {PROBLEMS}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"unknown optimizer {self.optimizer!r}; choose one of {OPTIMIZERS}")
+        if not (math.isfinite(self.budget) and self.budget > 0):
+            raise ValueError(f"the time budget must be a positive number of seconds, "
+                             f"not {self.budget!r}")
+        if self.max_updates is not None and self.max_updates < 1:
+            raise ValueError(f"max_updates must be ≥ 1, not {self.max_updates}")
+
+
+class RunExists(FileExistsError):
+    """The output directory holds a finished run, or an unfinished one without ``--resume``."""
+
+
+HISTORY_FIELDS = ("update", "wall_s", "train_loss", "test_loss")
+
+
+def _write_history(path: Path, history: list[dict]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS)
+    w.writeheader()
+    w.writerows(history)
+    write_text(path, buf.getvalue())
+
+
+def read_history(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def train_run(cfg: RunConfig, out: Path, resume: bool = False, progress: bool = True) -> dict:
+    """Train ``cfg.problem`` with ``cfg.optimizer`` for ``cfg.budget`` seconds of update time.
+
+    Writes ``out/history.csv``, ``out/loss.png`` and, when finished, ``out/result.json``;
+    ``out/checkpoint.pt`` (atomic, every 30 s of real time) lets an interrupted run resume.
+    A finished run is never overwritten: with ``resume`` its result is returned as it is.
+    """
+    cfg.validate()
+    out = Path(out)
+    result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
+    if result_path.exists():
+        if resume:
+            return json.loads(result_path.read_text())
+        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
+    if ckpt_path.exists() and not resume:
+        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    out.mkdir(parents=True, exist_ok=True)
+    config = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
+    torch.manual_seed(cfg.seed)
+    problem = make_problem(cfg.problem, cfg.seed, cfg.size)
+    settings = problem.settings[cfg.optimizer]
+    model = problem.model()
+    if cfg.optimizer == "adam":
+        opt = torch.optim.Adam(model.parameters(), lr=settings["lr"])
+    else:
+        opt = HalfInverseGradients(
+            model, problem.physics, problem.loss, lr=settings["lr"],
+            kappa=0.5 if cfg.optimizer == "hig" else 1.0, tau=settings["tau"],
+        )
+    gen = torch.Generator().manual_seed(cfg.seed + 1)
+    state = {"wall": 0.0, "updates": 0, "next_eval": 0.0, "history": [], "losses": [],
+             "diverged": False}
+    if ckpt_path.exists():
+        ckpt = torch.load(ckpt_path, weights_only=False)
+        if ckpt["config"] != config:
+            raise RunExists(f"{out} holds a run of another configuration {ckpt['config']}; "
+                            "choose another --out")
+        model.load_state_dict(ckpt["model"])
+        if cfg.optimizer == "adam":
+            opt.load_state_dict(ckpt["optimizer"])
+        gen.set_state(ckpt["generator"])
+        state = ckpt["state"]
+    write_text(out / "config.json", json.dumps(config, indent=2))
+
+    def evaluate() -> None:
+        train = float(np.mean(state["losses"])) if state["losses"] else math.nan
+        state["history"].append({"update": state["updates"], "wall_s": state["wall"],
+                                 "train_loss": train, "test_loss": test_loss(problem, model)})
+        state["losses"] = []
+        state["next_eval"] = max(0.02, 1.25 * state["wall"])
+
+    def checkpoint() -> None:
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({"config": config, "model": model.state_dict(),
+                        "optimizer": opt.state_dict() if cfg.optimizer == "adam" else None,
+                        "generator": gen.get_state(), "state": state}, tmp)
+        _write_history(out / "history.csv", state["history"])
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=round(cfg.budget, 1), initial=round(state["wall"], 1), unit="s",
+                   desc=f"{cfg.problem}/{cfg.optimizer}/seed {cfg.seed}", leave=False)
+
+    def done() -> bool:
+        return (state["diverged"] or state["wall"] >= cfg.budget
+                or (cfg.max_updates is not None and state["updates"] >= cfg.max_updates))
+
+    try:
+        _loop(cfg, problem, settings, model, opt, gen, state, evaluate, checkpoint, done, bar)
+    except KeyboardInterrupt:
+        checkpoint()
+        raise
+    evaluate()
+    if bar is not None:
+        bar.close()
+    checkpoint()
+    final = state["history"][-1]
+    result = {
+        **config,
+        "wall_s": state["wall"],
+        "updates": state["updates"],
+        "test_loss": final["test_loss"] if math.isfinite(final["test_loss"]) else None,
+        "diverged": state["diverged"],
+    }
+    plot_history({f"{cfg.optimizer}": state["history"]}, out / "loss.png",
+                 f"{cfg.problem}, seed {cfg.seed}")
+    write_text(result_path, json.dumps(result, indent=2))
+    return result
+
+
+def _loop(cfg, problem, settings, model, opt, gen, state, evaluate, checkpoint, done, bar):
+    last_save = time.monotonic()
+    while not done():
+        if state["wall"] >= state["next_eval"]:
+            evaluate()
+            if bar is not None:
+                bar.set_postfix(test=f"{state['history'][-1]['test_loss']:.3g}")
+        x, c, t = problem.sample(gen, int(settings["batch"]))
+        t0 = time.perf_counter()
+        try:
+            if cfg.optimizer == "adam":
+                opt.zero_grad()
+                loss = problem.loss(problem.physics(model(x), c), t).mean()
+                loss.backward()
+                opt.step()
+                value = float(loss.detach())
+            else:
+                value = opt.step(x, c, t)
+        except (FloatingPointError, NonFiniteStateError, NonFiniteInputError):
+            # The previous update sent the network where the physics blows up: the run ends.
+            state["diverged"] = True
+            value = math.inf
+        dt = time.perf_counter() - t0
+        state["wall"] += dt
+        state["updates"] += 1
+        if math.isfinite(value):
+            state["losses"].append(value)
+        if bar is not None:
+            bar.update(round(state["wall"], 1) - bar.n)
+        if time.monotonic() - last_save > 30.0:
+            checkpoint()
+            last_save = time.monotonic()
+
+
+def loss_at(history: list[dict], mark: float) -> float:
+    """The test loss of the last evaluation at or before ``mark`` seconds (inf before any)."""
+    value = math.inf
+    for row in history:
+        if row["wall_s"] <= mark and not math.isnan(row["test_loss"]):
+            value = row["test_loss"]
+    return value
+
+
+def plot_history(curves: dict[str, list[dict]], path: Path, title: str, ax=None) -> None:
+    """Test loss against wall-clock (log-log), one curve per label; saves when ``ax`` is None."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = None
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+    for label, hist in curves.items():
+        rows = [r for r in hist if r["wall_s"] > 0 and math.isfinite(r["test_loss"])]
+        ax.plot([r["wall_s"] for r in rows], [r["test_loss"] for r in rows], label=label)
+    ax.set(xscale="log", yscale="log", xlabel="wall-clock of the updates (s)",
+           ylabel="test loss", title=title)
+    ax.legend(fontsize=7)
+    if fig is not None:
+        fig.tight_layout()
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=120)
+        plt.close(fig)
+
+
+# --------------------------------------------------------------------------- CLI
+def add_parser(sub: argparse._SubParsersAction, help_text: str) -> None:
+    h = sub.add_parser("hig", help=help_text)
+    h.add_argument("problem", choices=PROBLEMS)
+    h.add_argument("--optimizer", choices=OPTIMIZERS, default="hig")
+    h.add_argument("--time-budget", type=float, default=None,
+                   help="seconds of update time (default: " + ", ".join(
+                       f"{k} {v:g}" for k, v in BUDGETS.items()) + ")")
+    h.add_argument("--seed", type=int, default=0)
+    h.add_argument("--out", type=Path, default=None,
+                   help="default runs/hig-PROBLEM-OPTIMIZER-seedS")
+    h.add_argument("--resume", action="store_true", help="continue OUT's unfinished run")
+    h.add_argument("--max-updates", type=int, default=None, help="stop after this many updates")
+    h.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    import sys
+
+    torch.set_num_threads(1)
+    budget = args.time_budget if args.time_budget is not None else BUDGETS[args.problem]
+    out = args.out or Path("runs") / f"hig-{args.problem}-{args.optimizer}-seed{args.seed}"
+    cfg = RunConfig(args.problem, args.optimizer, args.seed, budget,
+                    max_updates=args.max_updates)
+    try:
+        result = train_run(cfg, out, resume=args.resume)
+    except (RunExists, ValueError, MemoryError) as e:
+        print(f"adjointsim hig: {e}", file=sys.stderr)
+        return 2
+    loss = result["test_loss"]
+    print(f"{args.problem}/{args.optimizer} seed {args.seed}: {result['updates']} updates in "
+          f"{result['wall_s']:.1f} s, test loss "
+          f"{'diverged' if loss is None else f'{loss:.4g}'}; run in {out}")
+    return 0

@@ -1,0 +1,169 @@
+"""The ``hig`` study: Adam, Gauss–Newton and half-inverse gradients on every HIG problem, over
+seeds, compared at the same wall-clock of updates (``adjointsim study hig [--quick]``).
+
+Each cell is one ``adjointsim hig`` run (:func:`train.hig_problems.train_run`) in its own
+directory; its row holds the final test loss, the summed update time ``wall_s`` and the test
+loss at fixed wall-clock ``marks``. The report tables the median over seeds (and the range) at
+each mark, says per problem whether HIG ends below Adam and GN, and draws the loss-versus-time
+curves, one panel per problem.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from statistics import median
+
+import torch
+
+from adjointsim.runner import Study, register_study
+
+from ..atomic import atomic_path, write_text
+from ..hig_problems import OPTIMIZERS, PROBLEMS, RunConfig, loss_at, read_history
+from ..hig_problems import train_run as _train_run
+
+#: per size: problems, seeds, time budget per problem (s), wall-clock marks of the table (s)
+SIZES = {
+    "tiny": {"problems": ("chain", "oscillators"), "seeds": 1,
+             "budget": {"chain": 0.3, "oscillators": 0.3}, "marks": (0.1, 0.3), "data": "tiny"},
+    "quick": {"problems": PROBLEMS, "seeds": 3,
+              "budget": {"oscillators": 60.0, "quantum": 60.0, "poisson": 60.0, "chain": 100.0},
+              "marks": (1.0, 10.0, 30.0, 60.0, 100.0), "data": "full"},
+    "full": {"problems": PROBLEMS, "seeds": 3,
+             "budget": {"oscillators": 600.0, "quantum": 600.0, "poisson": 600.0,
+                        "chain": 100.0},
+             "marks": (1.0, 10.0, 100.0, 300.0, 600.0), "data": "full"},
+}
+
+
+def cells(size: str, seeds: int | None) -> list[dict]:
+    spec = SIZES[size]
+    n = spec["seeds"] if seeds is None else seeds
+    # Seed-major: an interrupted study has every problem at some seed before any third seed.
+    return [
+        {"id": f"{p}-{o}-s{s}", "problem": p, "optimizer": o, "seed": s,
+         "budget": spec["budget"][p], "data": spec["data"],
+         "marks": [m for m in spec["marks"] if m <= spec["budget"][p]]}
+        for s in range(n) for p in spec["problems"] for o in OPTIMIZERS
+    ]
+
+
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    torch.set_num_threads(1)
+    cfg = RunConfig(cell["problem"], cell["optimizer"], cell["seed"], cell["budget"],
+                    size=cell["data"])
+    result = _train_run(cfg, Path(run_dir), resume=True, progress=False)
+    history = read_history(Path(run_dir) / "history.csv")
+    return {
+        "wall_s": result["wall_s"],
+        "updates": result["updates"],
+        "test_loss": result["test_loss"],
+        "diverged": result["diverged"],
+        "loss_at": {str(m): loss_at(history, m) for m in cell["marks"]},
+    }
+
+
+def _fmt(values: list[float]) -> str:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return "diverged"
+    text = f"{median(finite):.2e}"
+    if len(finite) > 1:
+        text += f" [{min(finite):.1e}, {max(finite):.1e}]"
+    if len(finite) < len(values):
+        text += f" ({len(values) - len(finite)} div.)"
+    return text
+
+
+def _final(row: dict) -> float:
+    return math.inf if row["test_loss"] is None else row["test_loss"]
+
+
+def table(rows: list[dict]) -> str:
+    """Median test loss over seeds [min, max] at each wall-clock mark and at the end."""
+    lines = []
+    for problem in PROBLEMS:
+        mine = [r for r in rows if r["problem"] == problem]
+        if not mine:
+            continue
+        marks = mine[0]["marks"]
+        head = ["optimizer", "seeds"] + [f"@{m:g}s" for m in marks] + ["end", "updates"]
+        body = []
+        for opt in OPTIMIZERS:
+            rs = [r for r in mine if r["optimizer"] == opt]
+            if not rs:
+                continue
+            at = [[r["loss_at"].get(str(m)) for r in rs] for m in marks]
+            at = [[math.inf if v is None else v for v in col] for col in at]
+            body.append([opt, str(len(rs))] + [_fmt(col) for col in at]
+                        + [_fmt([_final(r) for r in rs]),
+                           f"{median(r['updates'] for r in rs):.0f}"])
+        widths = [max(len(x[i]) for x in [head, *body]) for i in range(len(head))]
+        lines.append(f"{problem} (budget {mine[0]['budget']:g} s of update time; test loss, "
+                     "median over seeds [min, max])")
+        for x in [head, *body]:
+            lines.append("  ".join(c.ljust(w) for c, w in zip(x, widths)))
+        lines.append(_verdict(problem, mine))
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _verdict(problem: str, rows: list[dict]) -> str:
+    """HIG against Adam and GN per seed at the last mark (the budget: the same wall-clock)."""
+    mark = str(rows[0]["marks"][-1])
+    by = {(r["optimizer"], r["seed"]): r["loss_at"][mark] for r in rows}
+    by = {k: math.inf if v is None else v for k, v in by.items()}
+    seeds = sorted({r["seed"] for r in rows})
+    parts = []
+    for other in ("adam", "gn"):
+        pairs = [(by[("hig", s)], by[(other, s)]) for s in seeds
+                 if ("hig", s) in by and (other, s) in by]
+        if pairs:
+            wins = sum(h < o for h, o in pairs)
+            ratio = median(o / h if h > 0 else math.inf for h, o in pairs)
+            parts.append(f"HIG below {other.upper()} in {wins}/{len(pairs)} seeds "
+                         f"(median {other.upper()}/HIG = {ratio:.3g})")
+    return f"  at @{float(mark):g}s: " + "; ".join(parts) if parts else ""
+
+
+def report(rows: list[dict], out: Path) -> str:
+    text = table(rows)
+    write_text(Path(out) / "table.txt", text + "\n")
+    plot(rows, Path(out), Path(out) / "hig.png")
+    return text
+
+
+def plot(rows: list[dict], out: Path, path: Path) -> None:
+    """Test loss against wall-clock, one panel per problem, one curve per optimizer and seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    problems = [p for p in PROBLEMS if any(r["problem"] == p for r in rows)]
+    fig, axes = plt.subplots(1, len(problems), figsize=(4.2 * len(problems), 3.4), squeeze=False)
+    colors = {"adam": "tab:blue", "gn": "tab:orange", "hig": "tab:green"}
+    for ax, problem in zip(axes[0], problems):
+        for r in rows:
+            if r["problem"] != problem:
+                continue
+            path_csv = out / r["id"] / "history.csv"
+            if not path_csv.exists():
+                continue
+            hist = [h for h in read_history(path_csv)
+                    if h["wall_s"] > 0 and math.isfinite(h["test_loss"])]
+            ax.plot([h["wall_s"] for h in hist], [h["test_loss"] for h in hist],
+                    color=colors[r["optimizer"]], alpha=0.8, lw=1,
+                    label=r["optimizer"].upper() if r["seed"] == 0 else None)
+        ax.set(xscale="log", yscale="log", xlabel="wall-clock of the updates (s)",
+               ylabel="test loss", title=problem)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+register_study(Study(name="hig", sizes=tuple(SIZES), cells=cells, run_cell=run_cell,
+                     report=report))
+
