@@ -85,6 +85,7 @@ TORCH_COMMANDS = {
     "train": "train a neural stepper (ONE/NOG/WIG, prediction/correction)",
     "eval": "evaluate a trained run: errors, correlation time, stability, plots",
     "study": "the grid of setups x modes x seeds, with a table and a plot",
+    "hig": "train through a solver with half-inverse gradients, Gauss-Newton or Adam",
 }
 
 

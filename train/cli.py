@@ -91,6 +91,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="no progress bar")
     s.set_defaults(func=_study, size="full")
 
+    from .hig_problems import add_parser as add_hig
+
+    add_hig(sub, COMMANDS["hig"])
+
 
 def _data(args: argparse.Namespace) -> int:
     from . import data
