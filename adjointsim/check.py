@@ -5,11 +5,21 @@ each scene parameter) the checker draws a rollout and cotangents w_k on a random
 states (always including the last one) and compares the hand-written adjoint against:
 
 * a **dot-product test**: ⟨J v, w⟩ against ⟨v, Jᵀ w⟩. ``J v`` is the complex-step derivative
-  Im F(x + i h v) / h of the same compiled kernels (exact to round-off, no cancellation), or a
-  sixth-order Richardson-extrapolated central difference for solvers that cannot run complex arrays;
+  Im F(x + i h v) / h of the same compiled kernels (exact to round-off, no cancellation), or, for
+  solvers that cannot run complex arrays, Ridders' extrapolation of central differences over
+  halving steps, which also estimates its own error;
 * a **Taylor test** on the quadratic functional Φ = Σ_K ⟨w_k, u_k⟩ + ½‖u_k‖²: the remainder
-  |Φ(x + εδ) − Φ(x) − ε⟨∇Φ, δ⟩| must fall as ε², i.e. rate ≈ 2 between successive ε;
-* a **central finite difference** of Φ along a random direction.
+  |Φ(x + εδ) − Φ(x) − ε⟨∇Φ, δ⟩| must fall as ε² as ε → 0, down to the level where round-off
+  (or the gradient's own precision) hides it;
+* a **central finite difference** of Φ along the same direction, again Ridders-extrapolated with
+  an error estimate.
+
+A reference with an error estimate cannot decide below that estimate, so a difference passes
+when it is within max(tolerance, 10 × the reference's estimated error), and the row fails as
+undecidable when the estimate itself exceeds a limit (``dot_ref``/``fd_ref``) chosen so that an
+adjoint error of relative size 1e-6 (float64) is always caught. All perturbations are scaled
+by the rollout's measured sensitivity, so a long chaotic rollout is probed where its Taylor
+expansion holds.
 
 In float32 the adjoint runs in float32 while the references (tangent, Φ) run the float64
 kernels from the same float32 inputs: the check then measures the float32 adjoint's own
@@ -18,6 +28,7 @@ error, not the round-off of a float32 finite difference.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -27,29 +38,49 @@ import numpy as np
 from . import registry
 from .stepper import Stepper
 
-#: thresholds per dtype: dot-product rel. error, Taylor rate, central-FD rel. error
+#: thresholds per dtype: dot-product rel. error and the largest reference error estimate that
+#: still decides it, Taylor rate, central-FD rel. error and its largest reference estimate
 TOLERANCES: dict[str, dict[str, float]] = {
-    "float64": {"dot": 1e-10, "rate": 1.9, "fd": 1e-6},
-    "float32": {"dot": 1e-4, "rate": 1.8, "fd": 2e-2},
+    "float64": {"dot": 1e-10, "dot_ref": 1e-8, "rate": 1.9, "fd": 1e-6, "fd_ref": 1e-7},
+    "float32": {"dot": 1e-4, "dot_ref": 1e-5, "rate": 1.8, "fd": 2e-2, "fd_ref": 2e-3},
 }
+#: a difference passes within this many estimated reference errors
+REF_SAFETY = 10.0
 _H_COMPLEX_STEP = 1e-100
-_EPS_TAYLOR = 1e-3
-_EPS_FD = 1e-5
+#: largest relative change of the trajectory the finite differences and Taylor test start from
+_REL_PERTURBATION = 1e-2
+#: halving steps of the Ridders tableau and the Taylor sequence (they share the rollouts)
+_LEVELS = 12
+_EPS = float(np.finfo(np.float64).eps)
 
 
 @dataclass(frozen=True)
 class CheckResult:
-    """One row of ``adjointsim gradcheck``."""
+    """One row of ``adjointsim gradcheck``.
+
+    ``*_rel_err`` compares the adjoint with a reference, ``*_ref_err`` is that reference's
+    estimated relative error (0 for the complex step) and ``*_bound`` what the comparison had to
+    meet. A value that could not be measured is None, and ``reason`` says why a row failed.
+    """
 
     solver: str
     wrt: str
-    dot_rel_err: float
-    taylor_rate: float
-    fd_rel_err: float
+    dot_rel_err: float | None
+    dot_ref_err: float | None
+    dot_bound: float | None
+    taylor_rate: float | None
+    fd_rel_err: float | None
+    fd_ref_err: float | None
+    fd_bound: float | None
     passed: bool
+    reason: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """Plain JSON values: non-finite numbers become None."""
+        return {
+            k: None if isinstance(v, float) and not math.isfinite(v) else v
+            for k, v in asdict(self).items()
+        }
 
 
 def check_stepper(
@@ -62,6 +93,9 @@ def check_stepper(
     """Check the adjoint of ``stepper`` for its state, controls and every scene parameter."""
     if dtype not in TOLERANCES:
         raise ValueError(f"dtype must be one of {sorted(TOLERANCES)}, not {dtype!r}")
+    if int(steps) != steps or steps < 1:
+        raise ValueError(f"steps must be a positive integer, not {steps!r}")
+    steps = int(steps)
     rng = np.random.default_rng(seed)
     real = np.dtype(dtype)
     u0 = stepper.random_state(rng, batch, real)
@@ -93,18 +127,6 @@ def check_stepper(
         dt = np.result_type(u, c, q, np.float64)
         return stepper._run(u.astype(dt), steps, c.astype(dt), q.astype(dt), keep_all=True)
 
-    def linear(traj: np.ndarray) -> Any:
-        return sum(np.sum(w[k] * traj[k]) for k in subset)
-
-    def magnitude(traj: np.ndarray) -> float:
-        return float(sum(np.sum(np.abs(w[k] * traj[k])) for k in subset))
-
-    def quadratic_magnitude(traj: np.ndarray) -> float:
-        return magnitude(traj) + float(sum(0.5 * np.sum(traj[k] ** 2) for k in subset))
-
-    def quadratic(traj: np.ndarray) -> float:
-        return float(sum(np.sum(w[k] * traj[k]) + 0.5 * np.sum(traj[k] ** 2) for k in subset))
-
     def gradient(cot: dict[int, np.ndarray], which: str) -> np.ndarray:
         g = stepper._vjp(
             u0, steps, np.ascontiguousarray(ctrl), p,
@@ -119,70 +141,168 @@ def check_stepper(
 
     base = run(u0, "state")
     quad_cot = {k: w[k] + base[k] for k in subset}
+    scale = max(float(np.max(np.abs(base[subset]))), 1e-300)
+    # Φ's round-off: ε_mach Σ|terms|, amplified as the state direction's perturbations grow.
+    phi0 = _linear(w, subset, base) + _half_square(subset, base)
+    noise_phi = 100 * _EPS * (_magnitude(w, subset, base) + _half_square(subset, base))
     rows = []
     tol = TOLERANCES[dtype]
     for which, x, delta in inputs:
-        grad_lin = gradient(w, which)
-        grad_quad = gradient(quad_cot, which)
         x, delta = x.astype(np.float64), delta.astype(np.float64)
+        grad_lin = gradient(w, which).astype(np.float64)
+        grad_quad = gradient(quad_cot, which).astype(np.float64)
         adj = float(np.sum(grad_lin * delta))
-        tangent, noise = _tangent(stepper, run, linear, magnitude, x, delta, which)
-        dot_err = abs(tangent - adj) / max(abs(tangent), abs(adj), noise, 1e-300)
-
-        def phi(e: float, x=x, delta=delta, which=which) -> float:
-            return quadratic(run(x + e * delta, which))
-
-        phi0 = quadratic(base)
         slope = float(np.sum(grad_quad * delta))
-        rate = _taylor_rate(phi, phi0, slope, _EPS_TAYLOR)
-        e = _EPS_FD
-        fd = (phi(e) - phi(-e)) / (2 * e)
-        # Central differences cannot resolve slopes below the round-off of Φ, taken as
-        # 100 eps Σ|terms of Φ|, divided by ε.
-        noise = 100 * np.finfo(np.float64).eps * quadratic_magnitude(base) / e
-        fd_err = abs(fd - slope) / max(abs(fd), abs(slope), noise, 1e-300)
-        passed = bool(dot_err <= tol["dot"] and rate >= tol["rate"] and fd_err <= tol["fd"])
-        rows.append(CheckResult(stepper.name, which, dot_err, rate, fd_err, passed))
+
+        # The tangent trajectory J δ: exact by complex step, else a one-sided difference that
+        # only sets the perturbation size and the scale of the sums below.
+        if stepper.complex_step:
+            tangent_traj = np.imag(run(x + 1j * _H_COMPLEX_STEP * delta, which)) / _H_COMPLEX_STEP
+        else:
+            h = 1e-7 / max(float(np.max(np.abs(delta))), 1e-300)
+            tangent_traj = (run(x + h * delta, which) - base) / h
+        sensitivity = float(np.max(np.abs(tangent_traj[subset]))) / scale
+        if which == "state":
+            first = float(np.linalg.norm(tangent_traj[0]))
+            growth = max(1.0, float(np.max(np.linalg.norm(
+                tangent_traj.reshape(len(tangent_traj), -1), axis=1))) / max(first, 1e-300))
+            noise_phi *= growth
+        h0 = _REL_PERTURBATION / max(sensitivity, 1.0)
+
+        # One pair of rollouts per halving step serves Ridders' tableaus and the Taylor test.
+        lin_d, quad_d, remainders, hs = [], [], [], []
+        for j in range(_LEVELS):
+            h = h0 * 0.5**j
+            plus, minus = run(x + h * delta, which), run(x - h * delta, which)
+            if not (np.all(np.isfinite(plus[subset])) and np.all(np.isfinite(minus[subset]))):
+                if lin_d:
+                    break
+                continue  # too large a step for this scene: start lower
+            lp, lm = _linear(w, subset, plus), _linear(w, subset, minus)
+            qp = lp + _half_square(subset, plus)
+            qm = lm + _half_square(subset, minus)
+            lin_d.append((lp - lm) / (2 * h))
+            quad_d.append((qp - qm) / (2 * h))
+            remainders.append(abs(qp - phi0 - h * slope))
+            hs.append(h)
+
+        reasons = []
+        mag_lin = _magnitude(w, subset, tangent_traj)
+        if stepper.complex_step:
+            tangent, tangent_err = _linear(w, subset, tangent_traj), 0.0
+        else:
+            tangent, tangent_err = _ridders(lin_d)
+        dot_err, dot_ref, dot_bound, ok_dot = _compare(
+            adj, tangent, tangent_err, mag_lin, tol["dot"], tol["dot_ref"], "dot-product", reasons
+        )
+        fd, fd_abs_err = _ridders(quad_d)
+        mag_quad = mag_lin + _magnitude(base, subset, tangent_traj)
+        fd_err, fd_ref, fd_bound, ok_fd = _compare(
+            slope, fd, fd_abs_err, mag_quad, tol["fd"], tol["fd_ref"], "central-FD", reasons
+        )
+        # The remainder is only read where it exceeds Φ's round-off and what the gradient's own
+        # precision (the dot-product tolerance) can resolve.
+        floors = [10 * (noise_phi + h * abs(slope) * tol["dot"]) for h in hs]
+        rate = _taylor_rate(remainders, floors)
+        if rate is None:
+            reasons.append("Taylor remainder below round-off at every step size")
+        elif rate < tol["rate"]:
+            reasons.append(f"Taylor rate {rate:.3f} < {tol['rate']:g}")
+        rows.append(CheckResult(
+            stepper.name, which, dot_err, dot_ref, dot_bound, rate, fd_err, fd_ref, fd_bound,
+            passed=not reasons, reason="; ".join(reasons) or None,
+        ))
     return rows
 
 
-def _tangent(
-    stepper: Stepper,
-    run: Callable[[np.ndarray, str], np.ndarray],
-    linear: Callable[[np.ndarray], Any],
-    magnitude: Callable[[np.ndarray], float],
-    x: np.ndarray,
-    delta: np.ndarray,
-    which: str,
-) -> tuple[float, float]:
-    """Directional derivative of the linear functional and its round-off level: complex step
-    (no cancellation), else Richardson-extrapolated central differences."""
-    if stepper.complex_step:
-        z = x + 1j * _H_COMPLEX_STEP * delta
-        return float(np.imag(linear(run(z, which))) / _H_COMPLEX_STEP), 0.0
-    h = 1e-2
-
-    def central(e: float) -> float:
-        plus, minus = linear(run(x + e * delta, which)), linear(run(x - e * delta, which))
-        return (float(plus) - float(minus)) / (2 * e)
-
-    # Two Richardson levels cancel the h² and h⁴ terms: the error is O(h⁶) + round-off / h.
-    d1, d2, d4 = central(h), central(h / 2), central(h / 4)
-    # Round-off of the differences: eps Σ|w_k u_k| / (h/4), amplified 64/45 by the weights.
-    noise = 64 / 45 * np.finfo(np.float64).eps * magnitude(run(x, which)) / (h / 4)
-    return (64.0 * d4 - 20.0 * d2 + d1) / 45.0, noise
+def _linear(w: dict[int, np.ndarray], subset: list[int], traj: np.ndarray) -> Any:
+    return sum(np.sum(w[k] * traj[k]) for k in subset)
 
 
-def _taylor_rate(
-    phi: Callable[[float], float], phi0: float, slope: float, eps0: float
-) -> float:
-    """Median observed order of the first-order Taylor remainder over halving ε."""
-    floor = 10 * np.finfo(np.float64).eps * max(abs(phi0), 1.0)
-    eps = eps0 * 0.5 ** np.arange(6)
-    rem = np.array([abs(phi(e) - phi0 - e * slope) for e in eps])
-    good = rem > floor
-    rates = [np.log2(rem[i] / rem[i + 1]) for i in range(len(eps) - 1) if good[i] and good[i + 1]]
-    return float(np.median(rates)) if rates else float("nan")
+def _half_square(subset: list[int], traj: np.ndarray) -> float:
+    return float(sum(0.5 * np.sum(traj[k] ** 2) for k in subset))
+
+
+def _magnitude(w: dict[int, np.ndarray] | np.ndarray, subset: list[int], traj: np.ndarray) -> float:
+    """Σ|terms| of ⟨w, traj⟩ over the subset: the scale below which a sum is cancellation."""
+    return float(sum(np.sum(np.abs(w[k] * traj[k])) for k in subset))
+
+
+def _compare(
+    adjoint: float,
+    reference: float,
+    reference_err: float,
+    magnitude: float,
+    tol: float,
+    ref_limit: float,
+    what: str,
+    reasons: list[str],
+) -> tuple[float, float, float, bool]:
+    """Relative mismatch, the reference's relative error estimate, the bound the mismatch must
+    meet and the verdict; appends the reason for a failure."""
+    denom = max(abs(adjoint), abs(reference), 100 * _EPS * magnitude, 1e-300)
+    err = abs(adjoint - reference) / denom
+    ref = reference_err / denom
+    bound = max(tol, REF_SAFETY * ref)
+    if not math.isfinite(err) or not math.isfinite(ref):
+        reasons.append(f"{what} reference is non-finite")
+        return err, ref, bound, False
+    if ref > ref_limit:
+        reasons.append(f"{what} reference error estimate {ref:.2e} > {ref_limit:g}: undecidable")
+        return err, ref, bound, False
+    if err > bound:
+        reasons.append(f"{what} rel. error {err:.2e} > {bound:.2e}")
+        return err, ref, bound, False
+    return err, ref, bound, True
+
+
+def _ridders(d: list[float]) -> tuple[float, float]:
+    """Ridders' extrapolation of central differences ``d[j]`` at steps h₀/2ʲ (Press et al.,
+    Numerical Recipes §5.7): the best entry of the Neville tableau and its error estimate, the
+    larger difference to its two lower-order neighbours."""
+    if not d:
+        return math.nan, math.inf
+    d = d[_asymptotic_start(d):]
+    best, err = d[0], math.inf
+    prev = [d[0]]
+    for i in range(1, len(d)):
+        cur = [d[i]]
+        fac = 4.0  # central differences expand in even powers of h
+        for j in range(1, i + 1):
+            cur.append((cur[j - 1] * fac - prev[j - 1]) / (fac - 1))
+            fac *= 4.0
+            e = max(abs(cur[j] - cur[j - 1]), abs(cur[j] - prev[j - 1]))
+            if e <= err:
+                best, err = cur[j], e
+        if abs(cur[i] - prev[i - 1]) >= 2 * err:  # higher order stopped helping: round-off
+            break
+        prev = cur
+    return best, err
+
+
+def _asymptotic_start(d: list[float]) -> int:
+    """First level from which the differences shrink like h² (ratios near 4 twice running):
+    the larger steps lie outside the range where the extrapolation's expansion holds."""
+    diffs = np.diff(d)
+
+    def quartered(a: float, b: float) -> bool:  # 2.5 < a / b < 6.5
+        return a * b > 0 and 2.5 * abs(b) < abs(a) < 6.5 * abs(b)
+
+    for j in range(len(diffs) - 2):
+        if quartered(diffs[j], diffs[j + 1]) and quartered(diffs[j + 1], diffs[j + 2]):
+            return j
+    return 0
+
+
+def _taylor_rate(remainders: list[float], floors: list[float]) -> float | None:
+    """Median order of the Taylor remainder over the last (smallest-ε) three halvings whose
+    remainders both stand above their floors; None when no halving does."""
+    rates = [
+        math.log2(remainders[i] / remainders[i + 1])
+        for i in range(len(remainders) - 1)
+        if remainders[i] > floors[i] and remainders[i + 1] > floors[i + 1]
+    ]
+    return float(np.median(rates[-3:])) if rates else None
 
 
 def check(

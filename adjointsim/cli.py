@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -13,13 +14,17 @@ from . import registry
 
 
 def _gradcheck(args: argparse.Namespace) -> int:
-    from .check import TOLERANCES, check
+    from .check import REF_SAFETY, TOLERANCES, check
 
     if args.list:
         print("\n".join(registry.names()))
         return 0
     if args.all == bool(args.names):
         print("gradcheck: name solvers or pass --all (see --list)", file=sys.stderr)
+        return 2
+    if args.steps < 1:
+        print(f"adjointsim gradcheck: --steps must be a positive integer, not {args.steps}",
+              file=sys.stderr)
         return 2
     names = registry.names() if args.all else args.names
     for name in names:
@@ -33,19 +38,27 @@ def _gradcheck(args: argparse.Namespace) -> int:
     rows = check(names, steps=args.steps, dtype=args.dtype, seed=args.seed, progress=progress)
     ok = all(r.passed for r in rows)
     if args.json:
-        print(json.dumps([r.as_dict() for r in rows]))
+        print(json.dumps([r.as_dict() for r in rows], allow_nan=False))
         return 0 if ok else 1
     tol = TOLERANCES[args.dtype]
     print(
-        f"{args.dtype}, {args.steps} steps, seed {args.seed}; pass if dot-product rel. error "
-        f"<= {tol['dot']:g}, Taylor rate >= {tol['rate']:g}, central-FD rel. error <= {tol['fd']:g}"
+        f"{args.dtype}, {args.steps} steps, seed {args.seed}; pass if dot-product rel. error <= "
+        f"max({tol['dot']:g}, {REF_SAFETY:g} x its reference's error estimate 'ref', which must be "
+        f"<= {tol['dot_ref']:g}), Taylor rate >= {tol['rate']:g}, central-FD rel. error <= "
+        f"max({tol['fd']:g}, {REF_SAFETY:g} x 'ref' <= {tol['fd_ref']:g})"
     )
     width = max(len(r.solver) for r in rows) if rows else 6
-    print(f"{'solver':<{width}}  {'wrt':<16} {'dot_rel_err':>11} {'taylor_rate':>11} "
-          f"{'fd_rel_err':>10}  result")
+    print(f"{'solver':<{width}}  {'wrt':<16} {'dot_rel_err':>11} {'ref':>8} {'taylor_rate':>11} "
+          f"{'fd_rel_err':>10} {'ref':>8}  result")
+
+    def num(v: float | None, spec: str, w: int) -> str:
+        return f"{v:{w}{spec}}" if v is not None and math.isfinite(v) else f"{'-':>{w}}"
+
     for r in rows:
-        print(f"{r.solver:<{width}}  {r.wrt:<16} {r.dot_rel_err:11.2e} {r.taylor_rate:11.3f} "
-              f"{r.fd_rel_err:10.2e}  {'pass' if r.passed else 'FAIL'}")
+        print(f"{r.solver:<{width}}  {r.wrt:<16} {num(r.dot_rel_err, '.2e', 11)} "
+              f"{num(r.dot_ref_err, '.1e', 8)} {num(r.taylor_rate, '.3f', 11)} "
+              f"{num(r.fd_rel_err, '.2e', 10)} {num(r.fd_ref_err, '.1e', 8)}  "
+              + ("pass" if r.passed else f"FAIL: {r.reason}"))
     failed = sum(not r.passed for r in rows)
     print(f"{len(rows) - failed} passed, {failed} failed in {time.perf_counter() - start:.1f} s")
     return 0 if ok else 1
@@ -61,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("names", nargs="*", help="registered solver names (see --list)")
     g.add_argument("--all", action="store_true", help="check every registered solver")
     g.add_argument("--list", action="store_true", help="print the registered solver names")
-    g.add_argument("--steps", type=int, default=50, help="rollout length (default 50)")
+    g.add_argument("--steps", type=int, default=50, help="rollout length, >= 1 (default 50)")
     g.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--json", action="store_true", help="print only a JSON list of rows")

@@ -101,7 +101,8 @@ def test_cli_list_and_json(capsys):
     out = capsys.readouterr().out
     rows = json.loads(out)
     assert {r["wrt"] for r in rows} == {"state", "controls", "nu"}
-    keys = {"solver", "wrt", "dot_rel_err", "taylor_rate", "fd_rel_err", "passed"}
+    keys = {"solver", "wrt", "dot_rel_err", "dot_ref_err", "dot_bound", "taylor_rate",
+            "fd_rel_err", "fd_ref_err", "fd_bound", "passed", "reason"}
     assert all(set(r) == keys and r["passed"] for r in rows)
 
 

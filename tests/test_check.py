@@ -1,0 +1,160 @@
+"""The gradient checker itself: it never flags a correct adjoint where its finite-difference
+references are noisy, it still catches small adjoint errors, and its CLI output is valid JSON."""
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import adjointsim
+from adjointsim.check import (
+    REF_SAFETY,
+    TOLERANCES,
+    CheckResult,
+    _ridders,
+    _taylor_rate,
+    check,
+    check_stepper,
+)
+from adjointsim.cli import main
+
+
+def _small(name: str):
+    cls = adjointsim.get(name)
+    if name.startswith("ks1d"):
+        return cls(n=16, length=3 * np.pi, dt=0.1)
+    return cls.default()
+
+
+def _perturbed(stepper, rel: float):
+    """The same scene whose adjoint returns every cotangent scaled by 1 + rel."""
+    vjp = stepper._vjp
+
+    def wrong(*args, **kwargs):
+        g = vjp(*args, **kwargs)
+        return replace(
+            g,
+            state=g.state * (1 + rel),
+            controls=None if g.controls is None else g.controls * (1 + rel),
+            params=None if g.params is None else {k: v * (1 + rel) for k, v in g.params.items()},
+        )
+
+    stepper._vjp = wrong
+    return stepper
+
+
+# One complex-step solver and two FFT solvers (Ridders-extrapolated finite differences).
+@pytest.mark.parametrize("name", ["diffusion1d-ftcs", "ks1d-etdrk4", "ns2d-etdrk2"])
+@pytest.mark.parametrize("steps", [1, 40])
+def test_a_relative_adjoint_error_of_1e_6_is_caught(name, steps):
+    rows = check_stepper(_perturbed(_small(name), 1e-6), steps=steps, seed=1)
+    assert rows and not any(r.passed for r in rows), rows
+    for r in rows:
+        assert "dot-product rel. error" in r.reason, r
+        assert r.dot_ref_err <= TOLERANCES["float64"]["dot_ref"], r
+    # ... and the unperturbed adjoint of the same scene passes.
+    assert all(r.passed for r in check_stepper(_small(name), steps=steps, seed=1))
+
+
+@pytest.mark.parametrize("name", ["diffusion1d-ftcs", "ks1d-etdrk4"])
+def test_a_dropped_intermediate_cotangent_is_caught(name):
+    """A classic adjoint bug: the cotangents of intermediate states are ignored (only the last
+    state's, which the sweep starts from, is kept)."""
+    stepper = _small(name)
+    adjoint = stepper._adjoint
+
+    def dropping(states, ctrl, p, cot, cmap, *rest):
+        return adjoint(states, ctrl, p, cot, np.full_like(cmap, -1), *rest)
+
+    stepper._adjoint = dropping
+    rows = check_stepper(stepper, steps=30, seed=0)
+    assert not any(r.passed for r in rows), rows
+
+
+@pytest.mark.parametrize(
+    "name, steps, seed",
+    [
+        ("ns2d-etdrk1", 1, 0),  # forcing: a linear map, round-off-dominated differences
+        ("ns2d-etdrk2", 1, 3),
+        ("ks1d-etdrk4", 500, 2),  # a long rollout: perturbations scaled by its sensitivity
+        ("burgers1d-etdrk2", 200, 5),
+    ],
+)
+def test_correct_fft_adjoints_pass_at_settings_that_used_to_fail(name, steps, seed):
+    rows = check_stepper(adjointsim.get(name).default(), steps=steps, seed=seed)
+    failed = [r for r in rows if not r.passed]
+    assert not failed, failed
+    for r in rows:
+        assert r.dot_ref_err <= TOLERANCES["float64"]["dot_ref"]
+        assert r.dot_rel_err <= r.dot_bound == max(TOLERANCES["float64"]["dot"],
+                                                   REF_SAFETY * r.dot_ref_err)
+
+
+def test_ridders_estimate_bounds_its_error():
+    x, h0 = 0.7, 0.5
+    d = [(math.exp(x + h) - math.exp(x - h)) / (2 * h) for h in h0 * 0.5 ** np.arange(12)]
+    # The estimate may undershoot at round-off level: the checker allows REF_SAFETY of them.
+    best, err = _ridders(d)
+    assert abs(best - math.exp(x)) <= REF_SAFETY * err < 1e-12
+    # A first level far outside the asymptotic range is skipped, not trusted.
+    best2, err2 = _ridders([100.0, *d[1:]])
+    assert abs(best2 - math.exp(x)) <= REF_SAFETY * err2 < 1e-12
+
+
+def test_taylor_rate_sees_a_first_order_remainder():
+    eps = 1e-2 * 0.5 ** np.arange(10)
+    floors = [1e-14] * 10
+    assert _taylor_rate(list(3 * eps**2), floors) == pytest.approx(2.0)
+    # a gradient error of 1e-3 (relative to a slope of order one) dominates at small ε
+    assert _taylor_rate(list(3 * eps**2 + 1e-3 * eps), floors) < 1.3
+    assert _taylor_rate(list(1e-16 * np.ones(10)), floors) is None
+
+
+@pytest.mark.parametrize("steps", ["0", "-3"])
+def test_cli_rejects_non_positive_steps(steps, capsys):
+    assert main(["gradcheck", "diffusion1d-ftcs", "--steps", steps]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--steps must be a positive integer" in err
+
+
+def test_rows_without_a_measurement_are_json_null():
+    row = CheckResult("s", "state", math.nan, math.inf, 1e-10, None, 1e-9, 1e-10, 1e-6, False,
+                      "Taylor remainder below round-off at every step size")
+    d = row.as_dict()
+    assert d["dot_rel_err"] is None and d["dot_ref_err"] is None and d["taylor_rate"] is None
+    json.dumps(d, allow_nan=False)
+
+
+def test_cli_json_is_strict_json_with_reference_errors(capsys):
+    assert main(["gradcheck", "ks1d-etdrk1", "--steps", "5", "--json"]) == 0
+
+    def reject(constant):
+        raise AssertionError(f"{constant} is not JSON")
+
+    rows = json.loads(capsys.readouterr().out, parse_constant=reject)
+    assert {r["wrt"] for r in rows} == {"state", "controls", "anti_diffusion", "hyper_diffusion"}
+    assert all(r["passed"] and r["reason"] is None and r["dot_ref_err"] > 0 for r in rows)
+
+
+def test_table_shows_reference_errors(capsys):
+    assert main(["gradcheck", "ks1d-etdrk1", "--steps", "3"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "ref" in out[1].split() and "error estimate" in out[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("steps", [1, 50, 200, 500])
+@pytest.mark.parametrize("seed", range(6))
+def test_every_solver_passes_gradcheck(steps, seed):
+    """`adjointsim gradcheck --all --steps S --seed K` for the issue's grid (about 5 min)."""
+    failed = [r for r in check(steps=steps, seed=seed) if not r.passed]
+    assert not failed, failed
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(3))
+def test_every_solver_passes_gradcheck_in_float32(seed):
+    failed = [r for r in check(dtype="float32", seed=seed) if not r.passed]
+    assert not failed, failed
