@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..registry import register
 from ..stepper import Range, Stepper
 
@@ -161,16 +162,14 @@ class Oscillators(Stepper):
         cubic_coupling: float = 1.0,
         gain: float = 3.0,
     ):
-        if int(n) != n or n < 1:
-            raise ValueError(f"{self.name}: n (the number of oscillators) must be ≥ 1, not {n!r}")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"{self.name}: dt must be positive and finite, not {dt!r}")
-        self.n = int(n)
+        name = self.name
+        self.n = validate.integer(name, "n", n, ge=1, why="the number of oscillators")
         self.grid_shape = (self.n,)
         self.channels = 2
-        self.dt = float(dt)
+        self.dt = validate.number(name, "dt", dt, gt=0)
+        values = (stiffness, linear_coupling, cubic_coupling, gain)
         self.param_values = tuple(
-            float(v) for v in (stiffness, linear_coupling, cubic_coupling, gain)
+            validate.number(name, k, v) for k, v in zip(self.param_names, values)
         )
         self.check_params(np.array(self.param_values))
 
