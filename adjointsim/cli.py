@@ -83,6 +83,18 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("which", choices=("work-precision",))
     b.add_argument("rest", nargs=argparse.REMAINDER, help="SCENE [--out DIR] [--quick]")
     b.set_defaults(func=_bench)
+    st = sub.add_parser("stability", help="largest stable Δt per scheme and grid (bisection on "
+                        "long rollouts) against each scheme's stated limit; table and plot")
+    st.add_argument("names", nargs="*", help="registered solver names (see gradcheck --list)")
+    st.add_argument("--all", action="store_true", help="every scheme with a time step")
+    st.add_argument("--size", choices=("tiny", "full"), default="full")
+    st.add_argument("--jobs", type=int, default=2, help="local worker processes (default 2)")
+    st.add_argument("--cluster", default=None, help="local, none or tcp://HOST:PORT, as for "
+                    "`adjointsim study` (default $DASK_SCHEDULER_ADDRESS, else local)")
+    st.add_argument("--retries", type=int, default=1)
+    st.add_argument("--out", default=None, help="default runs/stability[-SIZE]")
+    st.add_argument("--json", default=None, help="also write the rows here")
+    st.set_defaults(func=_stability)
     return parser
 
 
@@ -90,6 +102,13 @@ def _bench(args: argparse.Namespace) -> int:
     from .bench.work_precision import main as work_precision
 
     return work_precision(args.rest)
+
+
+def _stability(args: argparse.Namespace) -> int:
+    from .stability import command
+
+    return command(args.names, args.all, args.size, args.jobs, args.cluster, args.retries,
+                   args.out, args.json)
 
 
 #: commands that need torch; they live in the ``train`` package and load only when used

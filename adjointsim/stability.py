@@ -1,0 +1,252 @@
+"""Where each scheme stops being stable: the largest Δt at which a long rollout stays bounded,
+found by bisection, against the limit the scheme states itself.
+
+For every registered scheme that has a time step and a scene per grid size (``n``, default
+coefficients), one cell of the ``stability`` study (:mod:`adjointsim.runner`) finds
+
+- the **stated** limit: the largest Δt its constructor / ``check_params`` accepts (bisection on
+  acceptance; none if it accepts every Δt up to the search cap);
+- the **found** limit: the largest Δt at which ``steps`` steps from the scene's random state
+  plus white noise of 10⁻³ of its size (so that every mode is excited) stay finite and below
+  10⁴ × max(1, max|u₀|), with the scheme's own check switched off so that Δt beyond the stated
+  limit can be run. Bracketing doubles Δt from the scene's default; bisection (geometric)
+  stops at 2 % width (0.01 % for the stated limit).
+
+Verdicts: ``ok`` (stated within −5 %/+100 % of found), ``stated too large`` (the scheme accepts
+a Δt that blows up), ``conservative`` (stable up to more than twice the stated limit),
+``missing`` (no stated limit, but a finite one found), ``unconditional`` (neither found up to
+the cap). Long rollouts run as cells on the runner (``adjointsim stability --jobs/--cluster``).
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from . import registry
+from .runner import Study, register_study
+from .stepper import Stepper
+
+#: per size: grid sizes of 1D and 2D scenes, rollout length
+SIZES = {
+    "tiny": {"1d": (16, 32), "2d": (16,), "steps": 200},
+    "full": {"1d": (32, 64, 128, 256), "2d": (16, 32, 64), "steps": 1000},
+}
+CAP = 2.0**14  # the search stops at this multiple of the scene's default Δt
+GROWTH = 1e4
+WIDTH = 1.02
+
+
+def schemes() -> list[str]:
+    """Registered schemes that take a time step ``dt``."""
+    return [n for n in registry.names()
+            if "dt" in inspect.signature(registry.get(n).__init__).parameters]
+
+
+def _grids(name: str, size: str) -> tuple[int | None, ...]:
+    cls = registry.get(name)
+    if "n" not in inspect.signature(cls.__init__).parameters or cls.name in ("oscillators-rk4",):
+        return (None,)
+    return SIZES[size]["2d" if "2d" in name else "1d"]
+
+
+def cells(names: list[str] | None, size: str, seeds: int | None) -> list[dict]:
+    steps = SIZES[size]["steps"]
+    return [{"id": f"{name}-n{n}" if n else name, "scheme": name, "n": n, "steps": steps}
+            for name in (names or schemes()) for n in _grids(name, size)]
+
+
+def _make(cls: type[Stepper], n: int | None, dt: float | None) -> Stepper:
+    kwargs = {} if n is None else {"n": n}
+    return cls(**kwargs) if dt is None else cls(**kwargs, dt=dt)
+
+
+def _accepts(cls: type[Stepper], n: int | None, dt: float) -> bool:
+    try:
+        _make(cls, n, dt)
+    except ValueError:
+        return False
+    return True
+
+
+def _bounded(cls: type[Stepper], n: int | None, dt: float, steps: int) -> bool:
+    unchecked = type(cls.__name__, (cls,), {"check_params": lambda self, p: None})
+    try:
+        scene = _make(unchecked, n, dt)
+    except ValueError:
+        return False  # refused for another reason than the stability check
+    rng = np.random.default_rng(0)
+    u = scene.random_state(rng)
+    u = u + 1e-3 * max(float(np.abs(u).max()), 1e-12) * rng.standard_normal(u.shape)
+    bound = GROWTH * max(1.0, float(np.abs(u).max()))
+    done = 0
+    with np.errstate(all="ignore"):
+        while done < steps:
+            chunk = min(100, steps - done)
+            try:
+                u = scene.rollout(u, chunk)
+            except (FloatingPointError, ValueError):  # non-finite state
+                return False
+            if not np.abs(u).max() <= bound:
+                return False
+            done += chunk
+    return True
+
+
+def _largest(ok, start: float, cap: float, width: float = WIDTH) -> tuple[float | None, int]:
+    """The largest Δt with ``ok(Δt)`` (monotone assumed), from ``start`` within ×/÷ ``cap``;
+    None if ok up to ``start·cap``. Returns (Δt, evaluations)."""
+    evals = 1
+    lo = hi = start
+    if ok(start):
+        while True:
+            hi = lo * 2
+            evals += 1
+            if hi > start * cap:
+                return None, evals
+            if not ok(hi):
+                break
+            lo = hi
+    else:
+        while True:
+            lo = hi / 2
+            evals += 1
+            if lo < start / cap:
+                return 0.0, evals
+            if ok(lo):
+                break
+            hi = lo
+    while hi / lo > width:
+        mid = math.sqrt(lo * hi)
+        evals += 1
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return lo, evals
+
+
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    """Stated and found limits of one scheme on one grid."""
+    cls = registry.get(cell["scheme"])
+    n = cell["n"]
+    default = _make(cls, n, None)
+    base = default.dt
+    stated, _ = _largest(partial(_accepts, cls, n), base, CAP, width=1.0001)  # cheap: no rollouts
+    found, evals = _largest(partial(_bounded, cls, n, steps=cell["steps"]), base, CAP)
+    return {"default_dt": base, "params": {k: float(v) for k, v in default.params.items()},
+            "stated": stated, "found": found, "rollouts": evals, "verdict": verdict(stated, found)}
+
+
+def verdict(stated: float | None, found: float | None) -> str:
+    if found is None:
+        return "unconditional" if stated is None else "conservative"
+    if stated is None:
+        return "missing"
+    if stated > found * 1.05:
+        return "stated too large"
+    if found > 2 * stated:
+        return "conservative"
+    return "ok"
+
+
+def _fmt(x: float | None) -> str:
+    return "none" if x is None else f"{x:.4g}"
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown table: one row per scheme and grid."""
+    lines = ["| scheme | n | parameters | default Δt | stated limit | largest stable Δt | "
+             "found/stated | verdict |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ratio = (f"{r['found'] / r['stated']:.2f}" if r["found"] is not None and r["stated"]
+                 else "–")
+        params = ", ".join(f"{k}={v:g}" for k, v in r["params"].items())
+        lines.append(f"| {r['scheme']} | {r['n'] or '–'} | {params} | {r['default_dt']:.4g} | "
+                     f"{_fmt(r['stated'])} | {_fmt(r['found'])} | {ratio} | {r['verdict']} |")
+    return "\n".join(lines)
+
+
+def report(rows: list[dict], out: Path) -> str:
+    """``OUT/stability.md`` (table) and ``OUT/stability.png`` (largest stable Δt against the
+    grid size, per scheme, stated limits dashed)."""
+    from train.atomic import atomic_path, write_text
+
+    text = table(rows)
+    write_text(out / "stability.md", text + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    families: dict[str, list[dict]] = {}
+    for r in rows:
+        if r["n"]:
+            families.setdefault(r["scheme"].rsplit("-", 1)[0] if "etdrk" in r["scheme"]
+                                else r["scheme"].split("-")[0], []).append(r)
+    if families:
+        cols = min(4, len(families))
+        nrows = -(-len(families) // cols)
+        fig, axes = plt.subplots(nrows, cols, figsize=(4 * cols, 3.2 * nrows), squeeze=False)
+        for ax, (family, rs) in zip(axes.flat, sorted(families.items())):
+            for k, scheme in enumerate(sorted({r["scheme"] for r in rs})):
+                pts = sorted((r["n"], r["found"], r["stated"]) for r in rs if r["scheme"] == scheme)
+                color = f"C{k}"
+                ns = [p[0] for p in pts]
+                found = [p[1] if p[1] is not None else np.nan for p in pts]
+                ax.plot(ns, found, "o-", color=color, label=scheme.removeprefix(family + "-")
+                        or scheme)
+                stated = [p[2] if p[2] is not None else np.nan for p in pts]
+                ax.plot(ns, stated, "--", color=color, lw=1)
+            ax.set(xscale="log", yscale="log", title=family, xlabel="grid size n",
+                   ylabel="largest stable Δt")
+            ax.legend(fontsize=7)
+        for ax in axes.flat[len(families):]:
+            ax.axis("off")
+        fig.suptitle("largest bounded Δt (markers) and stated limit (dashed)", fontsize=10)
+        fig.tight_layout()
+        with atomic_path(out / "stability.png") as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+        plt.close(fig)
+    return text
+
+
+def study(names: list[str] | None = None) -> Study:
+    return Study("stability", tuple(SIZES), partial(cells, names), run_cell, report)
+
+
+register_study(study())
+
+
+def command(names: list[str], everything: bool, size: str, jobs: int, cluster: str | None,
+            retries: int, out: str | None, json_path: str | None) -> int:
+    """``adjointsim stability``: run the cells, print the table; exit 1 if a cell failed."""
+    import sys
+
+    from train.atomic import write_text
+
+    from . import runner
+
+    if everything == bool(names):
+        raise ValueError("name schemes or pass --all (see adjointsim gradcheck --list)")
+    valid = schemes()
+    for name in names:
+        registry.get(name)  # unknown names fail before any work
+        if name not in valid:
+            raise ValueError(f"{name} has no time step to sweep; choose from {valid}")
+    register_study(study(names or None))
+    out_dir = Path(out or f"runs/stability{'' if size == 'full' else '-' + size}")
+    failed: list[tuple[str, str]] = []
+    try:
+        rows = runner.run("stability", out_dir, size, None, cluster=cluster, jobs=jobs,
+                          retries=retries)
+    except runner.CellsFailed as e:
+        rows, failed = e.rows, e.failures
+    print(table(rows))
+    print(f"table: {out_dir / 'stability.md'}; plot: {out_dir / 'stability.png'}")
+    if json_path:
+        write_text(json_path, runner.dumps(rows) + "\n")
+    for cell_id, error in failed:
+        print(f"adjointsim stability: cell {cell_id} failed: {error}", file=sys.stderr)
+    return 1 if failed else 0
