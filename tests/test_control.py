@@ -1,0 +1,227 @@
+"""Gradient-flow modes (R/M/S/N/C, clipping), the closed loop, the control CLI and the study."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import adjointsim
+from adjointsim.cli import main as cli
+from train import control
+from train.model import NeuralStepper
+from train.trainer import TrainConfig
+from train.unroll import GradientFlow, canonical, clip_update, unrolled_loss
+
+
+def _setup(task="cartpole", level=None, steps=12, batch=4, seed=0):
+    """A short float64 loop with a random (not zero-initialised) controller."""
+    t = control.get_task(task, level)
+    t.steps = steps
+    torch.manual_seed(seed)
+    net = t.net().double()
+    for m in net.modules():
+        if isinstance(m, torch.nn.Linear | torch.nn.Conv1d):
+            m.reset_parameters()
+    x0 = torch.from_numpy(t.initial_states(np.random.default_rng(seed), batch))
+    return t, net, x0
+
+
+def _grads(task, net, x0, mode):
+    flow = GradientFlow(mode)
+    loss = control.closed_loop(task, net, x0, flow)[0]
+    return flow.backward(loss, list(net.parameters()))
+
+
+@pytest.mark.parametrize("task", ["cartpole", "guidance"])
+def test_combined_equals_two_pass_reference_and_the_sign_rule(task):
+    t, net, x0 = _setup(task)
+    g_m = _grads(t, net, x0, "M").grads  # two separate forward + backward passes
+    g_r = _grads(t, net, x0, "R").grads
+    c = _grads(t, net, x0, "C")  # one forward pass
+    kept = masked = 0
+    for a, b, got, gm, gr in zip(g_m, g_r, c.grads, c.g_m, c.g_r):
+        torch.testing.assert_close(gm, a, rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(gr, b, rtol=1e-12, atol=1e-15)
+        expected = torch.where(torch.sign(a) == torch.sign(b), a, torch.zeros_like(a))
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-15)
+        agree = torch.sign(a) == torch.sign(b)
+        kept += int((agree & (a != 0)).sum())
+        masked += int((~agree).sum())
+    assert kept > 0 and masked > 0  # the rule both keeps and drops components here
+    assert not all(torch.allclose(a, b) for a, b in zip(g_m, g_r))  # M really differs from R
+
+
+def test_modes_stop_the_paths_they_name():
+    """S: a final-step loss reaches only the last control; M and R reach every control;
+    N cuts the physics chain so the state's cotangent only comes through the network."""
+    t, net, x0 = _setup(steps=6)
+
+    def control_grads(mode):
+        flow = GradientFlow(mode)
+        x, cs = x0, []
+        for _ in range(t.steps):
+            c = t.control(net(flow.net(x)))
+            c.retain_grad()
+            cs.append(c)
+            x = adjointsim_step(t, flow.phys(x), c)
+        loss = (1 - torch.cos(x[:, 0, 1:])).mean()
+        loss.backward()
+        return [0.0 if c.grad is None else float(c.grad.abs().sum()) for c in cs]
+
+    s = control_grads("S")
+    assert all(v == 0 for v in s[:-1]) and s[-1] > 0
+    for mode in ("R", "M", "N"):
+        assert all(v > 0 for v in control_grads(mode)), mode
+    # M and R differ only by the network-input path: equal when that path carries nothing
+    r, m = control_grads("R"), control_grads("M")
+    assert r[-1] == pytest.approx(m[-1], rel=1e-12) and r[0] != pytest.approx(m[0], rel=1e-6)
+
+
+def adjointsim_step(task, x, c):
+    from train import bridge
+
+    return bridge.step(task.solver, x, c)
+
+
+def test_regular_mode_is_the_true_gradient():
+    t, net, x0 = _setup(steps=8)
+    g = _grads(t, net, x0, "R").grads
+    w = list(net.parameters())[0]
+    d = torch.randn_like(w)
+    eps = 1e-6
+    with torch.no_grad():
+        w += eps * d
+        plus = control.closed_loop(t, net, x0)[0]
+        w -= 2 * eps * d
+        minus = control.closed_loop(t, net, x0)[0]
+        w += eps * d
+    assert float((g[0] * d).sum()) == pytest.approx(float(plus - minus) / (2 * eps), rel=1e-6)
+
+
+def test_clipping():
+    g = [torch.tensor([3.0, -0.5]), torch.tensor([[-2.0]])]
+    v = clip_update(g, "value")
+    assert v[0].tolist() == [1.0, -0.5] and v[1].tolist() == [[-1.0]]
+    n = clip_update(g, "norm")
+    total = sum(float((a * a).sum()) for a in n) ** 0.5
+    assert total == pytest.approx(1.0)
+    assert float(n[0][0] / n[1][0, 0]) == pytest.approx(-1.5)  # direction kept
+    small = [torch.tensor([0.1])]
+    assert clip_update(small, "norm")[0].item() == pytest.approx(0.1)
+
+
+def test_mode_names_and_bad_options():
+    assert [canonical(m) for m in ("WIG", "NOG", "ONE", "C")] == ["R", "S", "R", "C"]
+    with pytest.raises(ValueError, match="unknown mode 'BPTT'; choose from ONE, NOG, WIG, R"):
+        GradientFlow("BPTT")
+    with pytest.raises(ValueError, match="unknown clip 'max'; choose from none, value, norm"):
+        GradientFlow("C", clip="max")
+    for mode in ("M", "C", "S", "R", "N"):  # the unrolled training takes every mode
+        assert TrainConfig.load(mode=mode).mode == mode
+
+
+def test_unrolled_training_combined_mode_equals_two_passes():
+    """The same switch serves List et al.'s unrolled training (correction setup)."""
+    torch.manual_seed(0)
+    net = torch.nn.Conv1d(2, 1, 3, padding=1, padding_mode="circular").double()
+    solver = adjointsim.get("diffusion1d-ftcs")(n=16)
+    model = NeuralStepper(net, "correction", lambda p: solver)
+    frames = torch.randn(3, 4, 1, 16, dtype=torch.float64)
+    params, cond = torch.zeros(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64)
+    ps = list(model.parameters())
+
+    def update(mode):
+        flow = GradientFlow(mode)
+        return flow.backward(unrolled_loss(model, frames, params, cond, flow), ps)
+
+    m, r, c = update("M").grads, update("WIG").grads, update("C").grads
+    for a, b, got in zip(m, r, c):
+        torch.testing.assert_close(got, torch.where(torch.sign(a) == torch.sign(b), a, 0 * a))
+    assert not torch.allclose(m[0], r[0])
+    nog, s = update("NOG").grads, update("S").grads
+    for a, b in zip(nog, s):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("task,level", [("cartpole", 4), ("guidance", 0.001), ("quantum", 5)])
+def test_tasks_shapes_and_parameter_counts(task, level):
+    t = control.get_task(task, level)
+    net = t.net().double()
+    n = sum(p.numel() for p in net.parameters())
+    assert n == {"cartpole": 11301, "guidance": 13004, "quantum": 11761}[task]
+    x0 = torch.from_numpy(t.initial_states(np.random.default_rng(0), 3))
+    out = t.control(net(x0))
+    assert out.shape == (3, *t.solver.control_shape)
+    assert float(out.detach().abs().max()) == 0.0  # zero-initialised last layer: c = 0 at the start
+
+
+def test_quantum_initial_states_are_normalised_and_the_loss_sees_the_target():
+    t = control.get_task("quantum", 3)
+    x = t.initial_states(np.random.default_rng(1), 5)
+    np.testing.assert_allclose(t.solver.h * (x**2).sum(axis=(1, 2)), 1.0, rtol=1e-12)
+    target = np.stack([t.eigen[2], 0 * t.eigen[2]])[None]
+    assert float(t.step_loss(torch.from_numpy(target), None, 0)) == pytest.approx(0.0, abs=1e-12)
+    assert float(t.step_loss(torch.from_numpy(x), None, 0)) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_bad_inputs_name_the_problem():
+    t, net, x0 = _setup(steps=2)
+    wrong = torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(4, 2)).double()
+    with pytest.raises(ValueError, match=r"output has shape \(4, 2\); expected \(batch, 1\)"):
+        control.closed_loop(t, wrong, x0)
+    nan_net = torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(4, 1)).double()
+    with torch.no_grad():
+        nan_net[1].bias.fill_(float("nan"))
+    with pytest.raises(ValueError, match="non-finite"):
+        control.closed_loop(t, nan_net, x0)
+    bad = x0.clone()
+    bad[1, 0, 0] = float("inf")
+    with pytest.raises(ValueError, match="non-finite"):
+        control.closed_loop(t, net, bad)
+    with pytest.raises(ValueError, match="poles must be one of 1, 2, 3, 4, not 5"):
+        control.ControlConfig.load(poles=5)
+    with pytest.raises(ValueError, match="target must be one of 3, 4, 5, not 2"):
+        control.ControlConfig.load(task="quantum", target=2)
+    with pytest.raises(ValueError, match="control-weight must be one of 1.0, 0.1, 0.01, 0.001"):
+        control.ControlConfig.load(task="guidance", control_weight=0.5)
+    with pytest.raises(ValueError, match="unknown task 'pendulum'; choose from cartpole"):
+        control.ControlConfig.load(task="pendulum")
+    with pytest.raises(ValueError, match="unknown mode 'F'; choose from R, M, S, N, C"):
+        control.ControlConfig.load(mode="F")
+    with pytest.raises(ValueError, match="'epochs' must be int"):
+        control.ControlConfig.load(epochs="ten")
+
+
+def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["control", "cartpole", "--epochs", "1", "--train", "4", "--test", "4", "--batch",
+            "4", "--out", str(out), "--no-progress", "--dtype", "float64"]
+    assert cli(args) == 0
+    rows = control.load_history(out / "history.csv")
+    assert len(rows) == 1 and set(rows[0]) == set(control.HISTORY_KEYS)
+    assert (out / "test_loss.png").exists() and (out / "rollout.png").exists()
+    assert cli(args) == 2
+    assert "holds a finished run" in capsys.readouterr().err
+    # more epochs with --resume continue the same run
+    assert cli([*args[:3], "2", *args[4:], "--resume"]) == 0
+    assert len(control.load_history(out / "history.csv")) == 2
+    assert cli(["control", "guidance", "--poles", "2"]) == 2
+    assert "--poles applies to cartpole, not guidance" in capsys.readouterr().err
+    assert cli(["control", "cartpole", "--mode", "X", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown mode 'X'; choose from R, M, S, N, C" in capsys.readouterr().err
+
+
+def test_tiny_study_end_to_end(tmp_path):
+    from adjointsim import runner
+    from train.studies import load_all
+
+    load_all()
+    rows = runner.run("stablebptt", tmp_path, "tiny", None, cluster="none", progress=False)
+    assert {(r["mode"], r["task"]) for r in rows} == {("R", "cartpole"), ("C", "cartpole")}
+    for r in rows:
+        assert {"task", "level", "mode", "clip", "seed", "test_loss"} <= set(r)
+        assert np.isfinite(r["test_loss"])
+    assert (tmp_path / "stablebptt-cartpole.png").exists()
+    assert "cartpole" in (tmp_path / "table.txt").read_text()
+    json.loads((tmp_path / "rows.json").read_text())

@@ -1,0 +1,134 @@
+"""The stabilised-BPTT study: tasks × complexity levels × gradient-flow modes × clipping × seeds.
+
+Each cell trains one controller (:func:`train.control.train`) in its own run directory and
+returns its row: ``task``, ``level``, ``mode``, ``clip``, ``seed``, ``test_loss`` (final), the
+final training loss, the per-epoch test losses and the time. Sizes:
+
+* ``tiny``: two cells of a few seconds (the end-to-end test);
+* ``quick``: every task at its easiest and hardest level, modes R/M/S/C, no clipping, one seed,
+  32 + 32 initial states, a few epochs (minutes on 2 cores);
+* ``hardest``: the finding of the paper: the hardest level of each task (4 poles, target 5,
+  control weight 0.001), modes R/M/C, no clipping, 3 seeds, 64 + 64 initial states;
+* ``full``: the paper's settings (Adam 1e-3, 256 + 256 initial states, batch 8), every level,
+  modes R/M/S/C, clipping none/value/norm, 3 seeds; epochs per task sized to about an hour
+  per task on 2 cores (the paper runs 1000).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from adjointsim.runner import Study, register_study
+
+from ..atomic import write_text
+from ..control import TASKS, ControlConfig, load_history, plot_history, train
+
+_MODES = ("R", "M", "S", "C")
+#: per size: levels per task ("ends" = easiest and hardest), modes, clips, seeds, samples, epochs
+SIZES = {
+    "tiny": {"tasks": {"cartpole": (1,)}, "modes": ("R", "C"), "clips": ("none",), "seeds": 1,
+             "train": 8, "test": 8, "batch": 4, "epochs": {"cartpole": 1}},
+    "quick": {"tasks": "ends", "modes": _MODES, "clips": ("none",), "seeds": 1,
+              "train": 32, "test": 32, "batch": 8,
+              "epochs": {"cartpole": 4, "guidance": 4, "quantum": 2}},
+    "hardest": {"tasks": "hardest", "modes": ("R", "M", "C"), "clips": ("none",), "seeds": 3,
+                "train": 64, "test": 64, "batch": 8,
+                "epochs": {"cartpole": 60, "guidance": 60, "quantum": 15}},
+    "full": {"tasks": "all", "modes": _MODES, "clips": ("none", "value", "norm"), "seeds": 3,
+             "train": 256, "test": 256, "batch": 8,
+             "epochs": {"cartpole": 10, "guidance": 10, "quantum": 3}},
+}
+
+
+def _levels(spec, task: str) -> tuple:
+    levels = TASKS[task].levels
+    if isinstance(spec, dict):
+        return spec.get(task, ())
+    return {"ends": (levels[0], levels[-1]), "hardest": (levels[-1],), "all": levels}[spec]
+
+
+def cells(size: str, seeds: int | None) -> list[dict]:
+    s = SIZES[size]
+    out = []
+    for task in TASKS:
+        for level in _levels(s["tasks"], task):
+            for mode in s["modes"]:
+                for clip in s["clips"]:
+                    for seed in range(seeds or s["seeds"]):
+                        out.append({
+                            "id": f"{task}-{level}-{mode}-{clip}-s{seed}",
+                            "task": task, "level": level, "mode": mode, "clip": clip,
+                            "seed": seed, "epochs": s["epochs"][task], "train": s["train"],
+                            "test": s["test"], "batch": s["batch"],
+                        })
+    return out
+
+
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    """Train (or resume, or reuse) the cell's controller in ``run_dir``; returns its row."""
+    knob = TASKS[cell["task"]].knob
+    cfg = ControlConfig(
+        task=cell["task"], mode=cell["mode"], clip=cell["clip"], seed=cell["seed"],
+        epochs=cell["epochs"], train=cell["train"], test=cell["test"], batch=cell["batch"],
+        out=str(run_dir), dtype="float32", threads=1,
+    )
+    setattr(cfg, knob, cell["level"])
+    cfg.validate()
+    result = train(cfg, resume=True, progress=False)
+    history = load_history(Path(run_dir) / "history.csv")
+    return {**cell, "test_loss": result["test_loss"], "train_loss": result["train_loss"],
+            "seconds": result["seconds"], "test_history": [h["test_loss"] for h in history],
+            "config": asdict(cfg)}
+
+
+def table(rows: list[dict]) -> str:
+    groups: dict[tuple, list[float]] = {}
+    for r in rows:
+        groups.setdefault((r["task"], r["level"], r["mode"], r["clip"]), []).append(
+            r["test_loss"] if r["test_loss"] is not None else float("nan"))
+    lines = [f"{'task':<9} {'level':>6} {'mode':<4} {'clip':<5} {'n':>2}  "
+             "final test loss (mean ± std)"]
+    order = {m: i for i, m in enumerate("RMSNC")}
+    for (task, level, mode, clip), v in sorted(
+            groups.items(), key=lambda kv: (list(TASKS).index(kv[0][0]), str(kv[0][1]),
+                                            kv[0][3], order[kv[0][2]])):
+        v = np.array(v, dtype=float)
+        lines.append(f"{task:<9} {level!s:>6} {mode:<4} {clip:<5} {len(v):>2}  "
+                     f"{np.nanmean(v):.4e} ± {np.nanstd(v):.2e}")
+    return "\n".join(lines)
+
+
+def report(rows: list[dict], out: Path) -> str:
+    """Table (``table.txt``) and one plot per task (``stablebptt-TASK.png``)."""
+    out = Path(out)
+    text = table(rows)
+    write_text(out / "table.txt", text + "\n")
+    for task in TASKS:
+        mine = [r for r in rows if r["task"] == task]
+        if not mine:
+            continue
+        curves: dict[tuple, list[list[float]]] = {}
+        for r in mine:
+            curves.setdefault((r["level"], r["mode"], r["clip"]), []).append(r["test_history"])
+        histories, labels = [], []
+        for (level, mode, clip), hs in sorted(curves.items(), key=lambda kv: str(kv[0])):
+            n = min(len(h) for h in hs)
+            mean = np.nanmean(np.array([h[:n] for h in hs], dtype=float), axis=0)
+            histories.append([{"epoch": e + 1, "test_loss": v} for e, v in enumerate(mean)])
+            clip_txt = "" if clip == "none" else f", clip {clip}"
+            labels.append(f"{TASKS[task].knob} {level}, {mode}{clip_txt} (n={len(hs)})")
+        plot_history(histories, labels, out / f"stablebptt-{task}.png",
+                     title=f"{task}: test loss, mean over seeds")
+    return text
+
+
+register_study(Study(
+    name="stablebptt",
+    sizes=tuple(SIZES),
+    cells=cells,
+    run_cell=run_cell,
+    report=report,
+))
