@@ -118,6 +118,7 @@ TORCH_COMMANDS = {
     "eval": "evaluate a trained run: errors, correlation time, stability, plots",
     "study": "the grid of setups x modes x seeds, with a table and a plot",
     "hig": "train through a solver with half-inverse gradients, Gauss-Newton or Adam",
+    "control": "train a controller through a simulator (cartpole, guidance, quantum; R/M/S/N/C)",
 }
 
 

@@ -95,6 +95,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     add_hig(sub, COMMANDS["hig"])
 
+    from .control import add_command
+
+    add_command(sub, COMMANDS["control"])
+
 
 def _data(args: argparse.Namespace) -> int:
     from . import data
