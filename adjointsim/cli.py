@@ -139,9 +139,9 @@ class Interrupted(KeyboardInterrupt):
     """Ctrl-C, carrying what a command's user should do to continue (its ``args[0]``)."""
 
 
-#: one line and exit 2 for these; anything else is a bug and keeps its traceback
-#: (``ADJOINTSIM_TRACEBACK=1`` shows it for these too)
-USER_ERRORS = (UserError, ValueError, KeyError, OSError)
+#: one line and exit 2 for these; anything else (a bare KeyError too) is a bug and keeps its
+#: traceback (``ADJOINTSIM_TRACEBACK=1`` shows it for these too)
+USER_ERRORS = (UserError, ValueError, registry.UnknownSolverError, OSError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -15,6 +15,10 @@ _REGISTRY: dict[str, type[Stepper]] = {}
 S = TypeVar("S", bound="type[Stepper]")
 
 
+class UnknownSolverError(KeyError):
+    """A solver name nobody registered (a user error: the CLI prints it on one line)."""
+
+
 def register(cls: S) -> S:
     """Class decorator: add a stepper class under its ``name``."""
     name = cls.name
@@ -41,7 +45,7 @@ def get(name: str) -> type[Stepper]:
     try:
         return _REGISTRY[name]
     except KeyError:
-        raise KeyError(
+        raise UnknownSolverError(
             f"unknown solver {name!r}; registered solvers are: {', '.join(sorted(_REGISTRY))}"
         ) from None
 

@@ -166,6 +166,16 @@ def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path,
     with pytest.raises(ZeroDivisionError):
         main(["train", "--data", str(tiny), "--out", str(tmp_path / "r"), *TINY])
 
+    def lookup_bug(*args, **kwargs):
+        return {}["a missing key"]
+
+    monkeypatch.setattr(train.trainer, "train", lookup_bug)
+    with pytest.raises(KeyError):
+        main(["train", "--data", str(tiny), "--out", str(tmp_path / "r"), *TINY])
+    # An unknown solver name is the user's KeyError: one line.
+    assert "unknown solver 'no-such-solver'" in _one_line_error(
+        capsys, "gradcheck", "no-such-solver", command="gradcheck")
+
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 

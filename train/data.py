@@ -107,7 +107,11 @@ def save(dataset: Dataset, path: str | Path) -> Path:
         for name, split in dataset.splits.items():
             g = f.create_group(name)
             for key in ARRAYS:
-                g.create_dataset(key, data=getattr(split, key), fletcher32=True)
+                a = getattr(split, key)
+                # One chunk (and checksum) per trajectory: HDF5's automatic chunks split the
+                # grid and read about 2x slower.
+                chunks = (1, *a.shape[1:]) if a.ndim > 1 else a.shape
+                g.create_dataset(key, data=a, fletcher32=True, chunks=chunks)
     return path
 
 
