@@ -197,8 +197,8 @@ def _jsonable(obj: Any) -> Any:
         return [_jsonable(v) for v in obj]
     if isinstance(obj, Path):
         return str(obj)
-    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):  # NumPy scalars
-        obj = obj.item()
+    if hasattr(obj, "tolist") and not isinstance(obj, (str, bytes)):  # NumPy arrays, scalars
+        return _jsonable(obj.tolist())
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
