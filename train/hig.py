@@ -158,7 +158,7 @@ class HalfInverseGradients:
         mb = rows * cols * torch.finfo(dtype).bits / 8 / 2**20
         if mb > self.max_jacobian_mb:
             raise MemoryError(
-                f"HIG: the Jacobian would be {rows} × {cols} ({dtype}) = {mb:.0f} MB, over "
+                f"HIG: the Jacobian would be {rows} × {cols} ({dtype}) = {mb:.3g} MB, over "
                 f"max_jacobian_mb = {self.max_jacobian_mb:g}; lower the batch size (rows = "
                 "batch · outputs per sample) or raise max_jacobian_mb"
             )

@@ -25,10 +25,10 @@ from ..hig_problems import train_run as _train_run
 #: per size: problems, seeds, time budget per problem (s), wall-clock marks of the table (s)
 SIZES = {
     "tiny": {"problems": ("chain", "oscillators"), "seeds": 1,
-             "budget": {"chain": 0.3, "oscillators": 0.3}, "marks": (0.1, 0.3), "data": "tiny"},
+             "budget": {"chain": 0.2, "oscillators": 0.2}, "marks": (0.1, 0.2), "data": "tiny"},
     "quick": {"problems": PROBLEMS, "seeds": 3,
-              "budget": {"oscillators": 40.0, "quantum": 40.0, "poisson": 40.0, "chain": 60.0},
-              "marks": (1.0, 5.0, 10.0, 20.0, 40.0, 60.0), "data": "full"},
+              "budget": {"oscillators": 20.0, "quantum": 20.0, "poisson": 20.0, "chain": 30.0},
+              "marks": (1.0, 2.0, 5.0, 10.0, 20.0, 30.0), "data": "full"},
     "full": {"problems": PROBLEMS, "seeds": 3,
              "budget": {"oscillators": 600.0, "quantum": 600.0, "poisson": 600.0,
                         "chain": 100.0},
@@ -52,7 +52,7 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     torch.set_num_threads(1)
     cfg = RunConfig(cell["problem"], cell["optimizer"], cell["seed"], cell["budget"],
                     size=cell["data"])
-    result = _train_run(cfg, Path(run_dir), resume=True, progress=False)
+    result = _train_run(cfg, Path(run_dir), resume=True, progress=False, plot=False)
     history = read_history(Path(run_dir) / "history.csv")
     return {
         "wall_s": result["wall_s"],

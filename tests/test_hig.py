@@ -1,0 +1,237 @@
+"""Half-inverse gradients: the update against a dense NumPy computation, the Jacobian against
+finite differences, error messages, the problems, runs (history, resume, refusal) and the
+study."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from adjointsim.solvers.oscillators import Oscillators
+from train.hig import HalfInverseGradients, SolverPhysics, TorchPhysics
+from train.hig_problems import RunConfig, RunExists, laplacian, make_problem, train_run
+
+STEPS = 6
+
+
+def small_problem(seed: int = 0):
+    torch.manual_seed(seed)
+    stepper = Oscillators(n=2, dt=0.25)
+    physics = SolverPhysics(stepper, STEPS, lambda c: c.reshape(-1, 2, 2))
+    model = torch.nn.Sequential(
+        torch.nn.Linear(4, 5), torch.nn.Tanh(), torch.nn.Linear(5, STEPS)
+    ).double()
+    x = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    return stepper, physics, model, x
+
+
+def flat_params(model):
+    return torch.cat([p.detach().reshape(-1) for p in model.parameters()]).numpy().copy()
+
+
+def outputs(stepper, model, theta, x):
+    """y(θ) in NumPy: the model at flat parameters θ, then the stepper's own rollout."""
+    params, offset = {}, 0
+    for k, p in model.named_parameters():
+        params[k] = torch.from_numpy(theta[offset : offset + p.numel()].reshape(p.shape))
+        offset += p.numel()
+    with torch.no_grad():
+        f = torch.func.functional_call(model, params, (x,)).numpy()
+    ctrl = np.ascontiguousarray(f.T[:, :, None])
+    return stepper.rollout(x.numpy().reshape(-1, 2, 2), STEPS, ctrl).reshape(-1)
+
+
+def test_jacobian_matches_central_finite_differences():
+    stepper, physics, model, x = small_problem()
+    opt = HalfInverseGradients(model, physics, lambda y, t: ((y - t) ** 2).sum(1))
+    y, jac = opt.jacobian(x, x)
+    theta = flat_params(model)
+    np.testing.assert_allclose(y.reshape(-1).numpy(), outputs(stepper, model, theta, x),
+                               rtol=1e-13)
+    eps = 1e-6
+    fd = np.empty((jac.shape[0], theta.size))
+    for j in range(theta.size):
+        e = np.zeros_like(theta)
+        e[j] = eps
+        fd[:, j] = (outputs(stepper, model, theta + e, x)
+                    - outputs(stepper, model, theta - e, x)) / (2 * eps)
+    assert jac.shape == (3 * 4, theta.size)
+    err = np.abs(jac.numpy() - fd).max() / np.abs(fd).max()
+    assert err < 1e-8, err
+
+
+@pytest.mark.parametrize("kappa", [0.5, 1.0])
+def test_hig_and_gn_steps_match_a_dense_numpy_svd(kappa):
+    stepper, physics, model, x = small_problem(1)
+    target = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+
+    def loss(y, t):
+        return ((y - t) ** 2).sum(1)
+
+    # The reference J: autograd through the bridge, one backward per row (not the batched
+    # adjoint), then NumPy's SVD.
+    names = [k for k, _ in model.named_parameters()]
+
+    def y_of(*ps):
+        f = torch.func.functional_call(model, dict(zip(names, ps)), (x,))
+        return physics(f, x).reshape(-1)
+
+    parts = torch.autograd.functional.jacobian(y_of, tuple(p.detach() for p in model.parameters()))
+    jac = torch.cat([j.reshape(j.shape[0], -1) for j in parts], dim=1).numpy()
+    with torch.no_grad():
+        y = y_of(*model.parameters()).numpy()
+    g = 2 * (y - target.numpy().reshape(-1)) / 3  # ∂(Σ L / b)/∂y
+    u, s, vt = np.linalg.svd(jac, full_matrices=False)
+    # τ between two singular values: the smallest ones must be dropped, not clamped
+    tau = math.sqrt(s[-3] * s[-4]) / s[0]
+    keep = s > tau * s[0]
+    assert 0 < (~keep).sum() < len(s)
+    lr = 0.3
+    expected = -lr * vt[keep].T @ (s[keep] ** -kappa * (u[:, keep].T @ g))
+
+    before = flat_params(model)
+    opt = HalfInverseGradients(model, physics, loss, lr=lr, kappa=kappa, tau=tau)
+    value = opt.step(x, x, target)
+    assert value == pytest.approx(np.mean(((y - target.numpy().reshape(-1)) ** 2)
+                                          .reshape(3, 4).sum(1)), rel=1e-12)
+    np.testing.assert_allclose(flat_params(model) - before, expected, rtol=1e-9,
+                               atol=1e-12 * np.abs(expected).max())
+    assert set(opt.timing) == {"network", "physics", "svd", "apply"}
+
+
+def test_tall_jacobians_take_the_direct_svd():
+    # More rows than parameters: J = U Σ Vᵀ directly; GN with τ = 0 is then least squares.
+    model = torch.nn.Linear(2, 3, bias=False).double()
+    physics = TorchPhysics(lambda f, c: torch.cat([f, f**2], dim=1))
+    opt = HalfInverseGradients(model, physics, lambda y, t: ((y - t) ** 2).sum(1), kappa=1.0,
+                               tau=0.0)
+    x = torch.rand(4, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    _, jac = opt.jacobian(x, torch.zeros(4, 0))
+    assert jac.shape == (24, 6)
+    g = torch.rand(24, dtype=torch.float64)
+    lstsq = np.linalg.lstsq(jac.numpy(), g.numpy(), rcond=None)[0]
+    np.testing.assert_allclose(opt.direction(jac, g).numpy(), lstsq, rtol=1e-10)
+
+
+def test_oversized_jacobian_is_refused_with_its_size_and_the_knob():
+    _, physics, model, x = small_problem()
+    opt = HalfInverseGradients(model, physics, lambda y, t: y.sum(1), max_jacobian_mb=1e-4)
+    with pytest.raises(MemoryError, match=r"12 × 61 .*max_jacobian_mb.*batch size"):
+        opt.step(x, x, x)
+
+
+def test_non_finite_jacobian_is_a_clear_error():
+    model = torch.nn.Linear(2, 2).double()
+    physics = TorchPhysics(lambda f, c: torch.sqrt(f - f.detach()))  # d√z/dz at 0 is inf
+    opt = HalfInverseGradients(model, physics, lambda y, t: y.sum(1))
+    with pytest.raises(FloatingPointError, match="non-finite entries"):
+        opt.step(torch.rand(2, 2, dtype=torch.float64), torch.zeros(2, 0), None)
+
+
+@pytest.mark.parametrize("kwargs", [{"lr": -1.0}, {"tau": float("nan")}, {"kappa": "half"}])
+def test_bad_settings_are_refused(kwargs):
+    _, physics, model, _ = small_problem()
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        HalfInverseGradients(model, physics, lambda y, t: y.sum(1), **kwargs)
+
+
+def test_problem_sizes_match_the_paper():
+    counts = {name: sum(p.numel() for p in make_problem(name, 0, "tiny").model().parameters())
+              for name in ("oscillators", "quantum", "poisson")}
+    assert counts == {"oscillators": 2956, "quantum": 9484, "poisson": 24896}
+
+
+def test_poisson_data_and_laplacian_agree_with_the_solver():
+    from adjointsim.solvers.poisson import Poisson2D
+
+    solver = Poisson2D(n=8, bc="dirichlet")
+    f = np.random.default_rng(0).standard_normal((5, 1, 8, 8))
+    u = solver.solve(f)  # (−Δ_h) u = f
+    lap = laplacian(torch.from_numpy(u.reshape(5, 64)), solver.inv_h2, 8)
+    np.testing.assert_allclose(lap.numpy(), -f.reshape(5, 64), atol=1e-11)
+    p = make_problem("poisson", 0, "tiny")
+    y, _, target = p.test
+    assert torch.equal(y, target) and y.shape == (64, 64)
+
+
+def test_quantum_targets_are_normalised_and_the_loss_is_an_infidelity():
+    p = make_problem("quantum", 0, "tiny")
+    x, c, t = p.test
+    h = 2.0 / 15
+    np.testing.assert_allclose(h * (t**2).sum(1).numpy(), 1.0, rtol=1e-12)
+    assert torch.allclose(p.loss(t, t), torch.zeros(len(t), dtype=t.dtype), atol=1e-12)
+    assert torch.allclose(p.loss(-t, t), torch.zeros(len(t), dtype=t.dtype), atol=1e-12)
+
+
+def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch):
+    cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=6)
+    calls = {"n": 0}
+    real_step = HalfInverseGradients.step
+
+    def interrupted(self, *a):
+        calls["n"] += 1
+        if calls["n"] == 4:  # the warm-up is call 1: interrupt after 2 timed updates
+            raise KeyboardInterrupt
+        return real_step(self, *a)
+
+    monkeypatch.setattr(HalfInverseGradients, "step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_run(cfg, tmp_path, progress=False)
+    assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / "result.json").exists()
+    with pytest.raises(RunExists, match="--resume"):
+        train_run(cfg, tmp_path, progress=False)
+    result = train_run(cfg, tmp_path, resume=True, progress=False)
+    assert result["updates"] == 6 and result["test_loss"] is not None
+    history = (tmp_path / "history.csv").read_text().splitlines()
+    assert history[0] == "update,wall_s,train_loss,test_loss"
+    updates = [int(line.split(",")[0]) for line in history[1:]]
+    assert updates[0] == 0 and updates[-1] == 6 and updates == sorted(updates)
+    assert (tmp_path / "loss.png").stat().st_size > 1000
+    with pytest.raises(RunExists, match="finished"):
+        train_run(cfg, tmp_path, progress=False)
+    assert train_run(cfg, tmp_path, resume=True, progress=False) == result
+    assert json.loads((tmp_path / "result.json").read_text())["optimizer"] == "hig"
+
+
+def test_cli_runs_and_refuses_in_one_line(tmp_path, capsys):
+    from adjointsim.cli import main
+
+    out = tmp_path / "run"
+    args = ["hig", "chain", "--optimizer", "gn", "--max-updates", "3", "--out", str(out)]
+    assert main(args) == 0
+    assert "3 updates" in capsys.readouterr().out
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "finished run" in err[0]
+
+
+def test_tiny_study_end_to_end(tmp_path):
+    import train.studies.hig as study
+    from adjointsim.runner import run
+
+    rows = run("hig", tmp_path, "tiny", None, cluster="none", progress=False)
+    assert {(r["problem"], r["optimizer"]) for r in rows} == {
+        (p, o) for p in ("chain", "oscillators") for o in ("adam", "gn", "hig")
+    }
+    for r in rows:
+        assert {"problem", "optimizer", "seed", "wall_s", "test_loss"} <= set(r)
+        assert r["wall_s"] >= r["budget"] or r["diverged"]
+    text = (tmp_path / "table.txt").read_text()
+    assert "chain" in text and "HIG below ADAM" in text
+    assert (tmp_path / "hig.png").stat().st_size > 1000
+    # a second run reuses every finished cell
+    cell = study.cells("tiny", None)[0]
+    assert study.run_cell(cell, tmp_path / cell["id"])["test_loss"] == rows[0]["test_loss"]
+
+
+@pytest.mark.slow
+def test_quick_study_reproduces_hig_below_adam_on_the_linear_chain(tmp_path):
+    import train.studies.hig  # noqa: F401
+    from adjointsim.runner import run
+
+    rows = run("hig", tmp_path, "quick", 3, cluster="local", jobs=2, progress=False)
+    chain = {(r["optimizer"], r["seed"]): r["test_loss"] for r in rows if r["problem"] == "chain"}
+    for seed in range(3):
+        assert chain[("hig", seed)] * 100 < chain[("adam", seed)]
