@@ -40,9 +40,13 @@ def _show(value: Any) -> str:
     return repr(value)
 
 
+def _bound(b: float) -> str:
+    return str(int(b)) if float(b).is_integer() else repr(float(b))
+
+
 def _bounds(gt: float | None, ge: float | None, lt: float | None, le: float | None) -> str:
-    low = f"> {gt:g}" if gt is not None else f"≥ {ge:g}" if ge is not None else ""
-    high = f"< {lt:g}" if lt is not None else f"≤ {le:g}" if le is not None else ""
+    low = f"> {_bound(gt)}" if gt is not None else f"≥ {_bound(ge)}" if ge is not None else ""
+    high = f"< {_bound(lt)}" if lt is not None else f"≤ {_bound(le)}" if le is not None else ""
     return " and ".join(b for b in (low, high) if b)
 
 
@@ -123,9 +127,7 @@ def choice(solver: str, arg: str, value: Any, choices: Sequence[Any], why: str =
         if type(value) is type(c) and value == c:
             return value
     allowed = ", ".join(map(repr, choices))
-    if not any(isinstance(value, type(c)) for c in choices) and not isinstance(
-        value, (str, numbers.Number, type(None))
-    ):
+    if not any(isinstance(value, type(c)) for c in choices):
         raise _wrong_type(solver, arg, f"one of {allowed}", value)
     raise _fail(solver, arg, f"one of {allowed}", value, why)
 

@@ -214,7 +214,7 @@ def test_unstable_dt_names_the_limit_and_the_largest_stable_dt():
         BurgersRusanov2D(n=16, dt=0.1)
     with pytest.raises(ValueError, match="nu must be a finite number ≥ 0, got -0.1"):
         BurgersRusanov1D(nu=-0.1)
-    with pytest.raises(ValueError, match="umax must be a finite number ≥ 0, got -1.0"):
+    with pytest.raises(ValueError, match="umax must be a finite number > 0, got -1.0"):
         BurgersRusanov1D(umax=-1.0)
     with pytest.raises(ValueError, match="n must be an integer ≥ 2, got 1"):
         BurgersRusanov2D(n=1)

@@ -250,7 +250,7 @@ class BurgersScene(Stepper):
         self.amplitude = validate.number(name, "amplitude", amplitude, gt=0)
         self.umax = (
             self.amplitude if umax is None
-            else validate.number(name, "umax", umax, ge=0, why="a bound on |u|")
+            else validate.number(name, "umax", umax, gt=0, why="the bound on |u|")
         )
         nu = validate.number(name, "nu", nu, ge=0)
         self.param_values = (nu,)
@@ -260,10 +260,6 @@ class BurgersScene(Stepper):
             name, "cfl", cfl, gt=0, le=1, why="dt=None takes cfl × the largest stable Δt"
         )
         if dt is None:
-            if self._rate(nu) == 0:
-                raise ValueError(
-                    f"{name}: umax = 0 and nu = 0 set no time scale for dt=None; give dt"
-                )
             self.substeps = 1 if substeps is None else substeps
             self.dt = cfl * self.substeps / self._rate(nu)
         else:
