@@ -122,10 +122,12 @@ def flag(solver: str, arg: str, value: Any) -> bool:
 
 
 def choice(solver: str, arg: str, value: Any, choices: Sequence[Any], why: str = "") -> Any:
-    """``value`` if it is one of ``choices`` (compared by type and equality)."""
+    """The entry of ``choices`` equal to ``value`` (of its type: ``numpy.str_`` matches ``str``,
+    ``True`` does not match ``1``)."""
     for c in choices:
-        if type(value) is type(c) and value == c:
-            return value
+        flag_mismatch = isinstance(value, (bool, np.bool_)) != isinstance(c, (bool, np.bool_))
+        if isinstance(value, type(c)) and not flag_mismatch and value == c:
+            return c
     allowed = ", ".join(map(repr, choices))
     if not any(isinstance(value, type(c)) for c in choices):
         raise _wrong_type(solver, arg, f"one of {allowed}", value)

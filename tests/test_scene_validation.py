@@ -35,6 +35,12 @@ def test_messages_name_solver_argument_value_and_what_is_accepted():
         validate.number("s", "cfl", 1.5, gt=0, le=1)
     with pytest.raises(ValueError, match="^s: bc must be one of 'periodic', 'dirichlet', got 'x'$"):
         validate.choice("s", "bc", "x", ("periodic", "dirichlet"))
+    # values read back from files (HDF5 attributes) come as NumPy scalars
+    bc = validate.choice("s", "bc", np.str_("dirichlet"), ("periodic", "dirichlet"))
+    assert bc == "dirichlet" and type(bc) is str
+    assert validate.flag("s", "dealias", np.bool_(True)) is True
+    with pytest.raises(ValueError, match="^s: k must be one of 1, 2, got True$"):
+        validate.choice("s", "k", True, (1, 2))
     with pytest.raises(ValueError, match=r"^s: g must have shape \(1, 4\), got shape \(4,\)$"):
         validate.array("s", "g", np.zeros(4), (1, 4))
     with pytest.raises(ValueError, match=r"g must be finite; got nan at index \(0, 2\)"):
