@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..registry import register
 from ..stepper import Range, Stepper
 
@@ -159,11 +160,11 @@ class CartPole(Stepper):
         total_mass: float = 1.1,
         length: float = 0.5,
     ):
-        if int(poles) != poles or not 1 <= poles <= 4:
-            raise ValueError(f"{self.name}: poles must be 1, 2, 3 or 4, not {poles!r}")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"{self.name}: dt must be positive and finite, not {dt!r}")
-        self.poles = int(poles)
+        self.poles = validate.integer(self.name, "poles", poles, ge=1, le=4)
+        dt = validate.number(self.name, "dt", dt, gt=0)
+        gravity = validate.number(self.name, "gravity", gravity)
+        for arg, v in (("pole_mass", pole_mass), ("total_mass", total_mass), ("length", length)):
+            validate.number(self.name, arg, v, gt=0)
         self.grid_shape = (1 + self.poles,)
         self.channels = 2
         self.control_shape = (1,)

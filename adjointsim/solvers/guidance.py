@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .. import validate
 from ..registry import register
 from ..stepper import Range, Stepper
 
@@ -233,12 +234,13 @@ class Guidance(Stepper):
         driver_spacing: float = 0.2,
         evader_cohesion: float = 0.2,
     ):
-        for what, v in (("drivers", drivers), ("evaders", evaders)):
-            if int(v) != v or v < 1:
-                raise ValueError(f"{self.name}: {what} must be an integer ≥ 1, not {v!r}")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"{self.name}: dt must be positive and finite, not {dt!r}")
-        self.drivers, self.evaders = int(drivers), int(evaders)
+        self.drivers = validate.integer(self.name, "drivers", drivers, ge=1)
+        self.evaders = validate.integer(self.name, "evaders", evaders, ge=1)
+        dt = validate.number(self.name, "dt", dt, gt=0)
+        for arg, v in (("repulsion", repulsion), ("driver_damping", driver_damping),
+                       ("evader_damping", evader_damping), ("driver_spacing", driver_spacing),
+                       ("evader_cohesion", evader_cohesion)):
+            validate.number(self.name, arg, v, ge=0)
         self.grid_shape = (self.drivers + self.evaders,)
         self.channels = 4
         self.control_shape = (self.drivers, 2)
@@ -250,7 +252,7 @@ class Guidance(Stepper):
         self.check_params(np.array(self.param_values))
 
     def check_params(self, p: np.ndarray) -> None:
-        if np.any(np.asarray(p, dtype=np.float64) < 0):
+        if p.min() < 0:
             raise ValueError(
                 f"{self.name}: parameters {dict(zip(self.param_names, p))} must be ≥ 0"
             )
