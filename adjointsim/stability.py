@@ -21,6 +21,7 @@ the cap). Long rollouts run as cells on the runner (``adjointsim stability --job
 from __future__ import annotations
 
 import inspect
+import json
 import math
 from functools import partial
 from pathlib import Path
@@ -54,29 +55,40 @@ def _grids(name: str, size: str) -> tuple[int | None, ...]:
     return SIZES[size]["2d" if "2d" in name else "1d"]
 
 
+def _coefficients(name: str) -> list[dict]:
+    """The default coefficients, and ν ×10 where the scene has a viscosity/diffusivity ν."""
+    nu = inspect.signature(registry.get(name).__init__).parameters.get("nu")
+    if nu is None or not isinstance(nu.default, float) or nu.default <= 0:
+        return [{}]
+    return [{}, {"nu": 10 * nu.default}]
+
+
 def cells(names: list[str] | None, size: str, seeds: int | None) -> list[dict]:
     steps = SIZES[size]["steps"]
-    return [{"id": f"{name}-n{n}" if n else name, "scheme": name, "n": n, "steps": steps}
-            for name in (names or schemes()) for n in _grids(name, size)]
+    return [{"id": "-".join([name, *([f"n{n}"] if n else []),
+                             *(f"{k}{v:g}" for k, v in coef.items())]),
+             "scheme": name, "n": n, "coefficients": coef, "steps": steps}
+            for name in (names or schemes()) for coef in _coefficients(name)
+            for n in _grids(name, size)]
 
 
-def _make(cls: type[Stepper], n: int | None, dt: float | None) -> Stepper:
-    kwargs = {} if n is None else {"n": n}
+def _make(cls: type[Stepper], n: int | None, dt: float | None, coef: dict) -> Stepper:
+    kwargs = {**coef, **({} if n is None else {"n": n})}
     return cls(**kwargs) if dt is None else cls(**kwargs, dt=dt)
 
 
-def _accepts(cls: type[Stepper], n: int | None, dt: float) -> bool:
+def _accepts(cls: type[Stepper], n: int | None, coef: dict, dt: float) -> bool:
     try:
-        _make(cls, n, dt)
+        _make(cls, n, dt, coef)
     except ValueError:
         return False
     return True
 
 
-def _bounded(cls: type[Stepper], n: int | None, dt: float, steps: int) -> bool:
+def _bounded(cls: type[Stepper], n: int | None, coef: dict, dt: float, steps: int) -> bool:
     unchecked = type(cls.__name__, (cls,), {"check_params": lambda self, p: None})
     try:
-        scene = _make(unchecked, n, dt)
+        scene = _make(unchecked, n, dt, coef)
     except ValueError:
         return False  # refused for another reason than the stability check
     rng = np.random.default_rng(0)
@@ -130,11 +142,11 @@ def _largest(ok, start: float, cap: float, width: float = WIDTH) -> tuple[float 
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Stated and found limits of one scheme on one grid."""
     cls = registry.get(cell["scheme"])
-    n = cell["n"]
-    default = _make(cls, n, None)
+    n, coef = cell["n"], cell.get("coefficients", {})
+    default = _make(cls, n, None, coef)
     base = default.dt
-    stated, _ = _largest(partial(_accepts, cls, n), base, CAP, width=1.0001)  # cheap: no rollouts
-    found, evals = _largest(partial(_bounded, cls, n, steps=cell["steps"]), base, CAP)
+    stated, _ = _largest(partial(_accepts, cls, n, coef), base, CAP, width=1.0001)  # no rollouts
+    found, evals = _largest(partial(_bounded, cls, n, coef, steps=cell["steps"]), base, CAP)
     return {"default_dt": base, "params": {k: float(v) for k, v in default.params.items()},
             "stated": stated, "found": found, "rollouts": evals, "verdict": verdict(stated, found)}
 
@@ -156,21 +168,30 @@ def _fmt(x: float | None) -> str:
 
 
 def table(rows: list[dict]) -> str:
-    """Markdown table: one row per scheme and grid."""
+    """Markdown table: one row per scheme, coefficients and grid."""
     lines = ["| scheme | n | parameters | default Δt | stated limit | largest stable Δt | "
              "found/stated | verdict |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ratio = (f"{r['found'] / r['stated']:.2f}" if r["found"] is not None and r["stated"]
                  else "–")
         params = ", ".join(f"{k}={v:g}" for k, v in r["params"].items())
+        found = (f"≥ {r['default_dt'] * CAP:.3g} (cap)" if r["found"] is None
+                 else _fmt(r["found"]))
+        note = (", **default Δt unstable**" if r["found"] is not None
+                and r["found"] < r["default_dt"] else "")
         lines.append(f"| {r['scheme']} | {r['n'] or '–'} | {params} | {r['default_dt']:.4g} | "
-                     f"{_fmt(r['stated'])} | {_fmt(r['found'])} | {ratio} | {r['verdict']} |")
+                     f"{_fmt(r['stated'])} | {found} | {ratio} | {r['verdict']}{note} |")
     return "\n".join(lines)
 
 
+def _family(scheme: str) -> str:
+    return scheme.rsplit("-", 1)[0] if "etdrk" in scheme else scheme.split("-")[0]
+
+
 def report(rows: list[dict], out: Path) -> str:
-    """``OUT/stability.md`` (table) and ``OUT/stability.png`` (largest stable Δt against the
-    grid size, per scheme, stated limits dashed)."""
+    """``OUT/stability.md`` (table) and ``OUT/stability.png``: per scheme family, the largest
+    stable Δt against the grid size (markers; triangles: stable up to the search cap) and the
+    stated limit (dashed)."""
     from train.atomic import atomic_path, write_text
 
     text = table(rows)
@@ -183,32 +204,40 @@ def report(rows: list[dict], out: Path) -> str:
     families: dict[str, list[dict]] = {}
     for r in rows:
         if r["n"]:
-            families.setdefault(r["scheme"].rsplit("-", 1)[0] if "etdrk" in r["scheme"]
-                                else r["scheme"].split("-")[0], []).append(r)
-    if families:
-        cols = min(4, len(families))
-        nrows = -(-len(families) // cols)
-        fig, axes = plt.subplots(nrows, cols, figsize=(4 * cols, 3.2 * nrows), squeeze=False)
-        for ax, (family, rs) in zip(axes.flat, sorted(families.items())):
-            for k, scheme in enumerate(sorted({r["scheme"] for r in rs})):
-                pts = sorted((r["n"], r["found"], r["stated"]) for r in rs if r["scheme"] == scheme)
-                color = f"C{k}"
-                ns = [p[0] for p in pts]
-                found = [p[1] if p[1] is not None else np.nan for p in pts]
-                ax.plot(ns, found, "o-", color=color, label=scheme.removeprefix(family + "-")
-                        or scheme)
-                stated = [p[2] if p[2] is not None else np.nan for p in pts]
-                ax.plot(ns, stated, "--", color=color, lw=1)
-            ax.set(xscale="log", yscale="log", title=family, xlabel="grid size n",
-                   ylabel="largest stable Δt")
-            ax.legend(fontsize=7)
-        for ax in axes.flat[len(families):]:
-            ax.axis("off")
-        fig.suptitle("largest bounded Δt (markers) and stated limit (dashed)", fontsize=10)
-        fig.tight_layout()
-        with atomic_path(out / "stability.png") as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-        plt.close(fig)
+            families.setdefault(_family(r["scheme"]), []).append(r)
+    if not families:
+        return text
+    cols = min(4, len(families))
+    nrows = -(-len(families) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.3 * nrows), squeeze=False)
+    for ax, (family, rs) in zip(axes.flat, sorted(families.items())):
+        lines = sorted({(r["scheme"], json.dumps(r.get("coefficients", {}))) for r in rs})
+        for k, (scheme, coef) in enumerate(lines):
+            pts = sorted((r["n"], r["found"], r["stated"], r["default_dt"] * CAP) for r in rs
+                         if r["scheme"] == scheme
+                         and json.dumps(r.get("coefficients", {})) == coef)
+            label = " ".join([scheme.removeprefix(family).strip("-") or scheme,
+                              *(f"{key}={v:g}" for key, v in json.loads(coef).items())])
+            ns = np.array([p[0] for p in pts], dtype=float)
+            found = np.array([np.nan if p[1] is None else p[1] for p in pts])
+            capped = np.array([p[3] if p[1] is None else np.nan for p in pts])
+            stated = np.array([np.nan if p[2] is None else p[2] for p in pts])
+            color = f"C{k % 10}"
+            ax.plot(ns, found, "o-", color=color, label=label, ms=4)
+            ax.plot(ns, capped, "^", color=color, ms=6,
+                    label=None if np.isnan(capped).all() else f"{label}: stable to cap")
+            ax.plot(ns, stated, "--", color=color, lw=1)
+        ax.set(xscale="log", yscale="log", title=family, xlabel="grid size n",
+               ylabel="largest stable Δt")
+        ax.legend(fontsize=6)
+    for ax in axes.flat[len(families):]:
+        ax.axis("off")
+    fig.suptitle("largest Δt with a bounded rollout (markers), stated limit (dashed)",
+                 fontsize=10)
+    fig.tight_layout()
+    with atomic_path(out / "stability.png") as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
     return text
 
 
