@@ -116,3 +116,155 @@ def test_bad_tensors_get_clear_errors():
     meta = torch.empty(u0.shape, device="meta", dtype=torch.float64)
     with pytest.raises(ValueError, match="CPU"):
         bridge.rollout(stepper, meta, 4)
+
+
+# ------------------------------------------------------------------ edges (issue 8)
+@pytest.mark.parametrize("name", NAMES)
+def test_zero_steps_and_empty_batches_through_the_bridge(name):
+    """n = 0 returns u0 (the cotangent passes straight through), B = 0 gives empty results,
+    and otherwise the bridge agrees with the stepper, for every registered solver."""
+    stepper = adjointsim.get(name).default()
+    for batch in (0, 1, 3):
+        for n in (0, 1, 2):
+            u0, ctrl, params = _inputs(stepper, n, batch=batch)
+            inputs = [x for x in (u0, ctrl, params) if x is not None]
+            for keep in ("last", "all"):
+                out = bridge.rollout(stepper, u0, n, ctrl, params, keep=keep)
+                shape = u0.shape if keep == "last" else (n + 1, *u0.shape)
+                assert out.shape == shape
+                w = torch.from_numpy(np.random.default_rng(n).standard_normal(shape))
+                grads = torch.autograd.grad((w * out).sum(), inputs)
+                for x, g in zip(inputs, grads, strict=True):
+                    assert g.shape == x.shape and torch.isfinite(g).all()
+                if n == 0:
+                    torch.testing.assert_close(out.reshape(u0.shape), u0.detach(), rtol=0, atol=0)
+                    assert batch == 0 or out.data_ptr() != u0.data_ptr()
+                    torch.testing.assert_close(grads[0], w.reshape(u0.shape), rtol=0, atol=0)
+                    for g in grads[1:]:
+                        assert not g.any()
+                elif batch:
+                    c = None if ctrl is None else ctrl.detach().numpy()
+                    p = None if params is None else params.detach().numpy()
+                    expected = stepper.rollout(u0.detach().numpy(), n, c, p, keep=keep)
+                    np.testing.assert_allclose(out.detach().numpy(), expected, rtol=1e-12)
+
+
+def test_zero_steps_with_checkpointing_and_step_on_an_empty_batch():
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u0, _, _ = _inputs(stepper, 0)
+    out = bridge.rollout(stepper, u0, 0, checkpoint=4)
+    (g,) = torch.autograd.grad(out.sum() * 3.0, u0)
+    torch.testing.assert_close(g, torch.full_like(u0, 3.0))
+    u, ctrl, params = _inputs(stepper, 1, batch=0)
+    out = bridge.step(stepper, u, ctrl[0].detach().requires_grad_(), params)
+    assert out.shape == u.shape
+    out.sum().backward()
+    assert u.grad.shape == u.shape and params.grad.shape == params.shape
+
+
+@pytest.mark.parametrize("n", [-1, 2.5, 1.0, "3", None, True])
+def test_invalid_step_counts_get_a_clear_error(n):
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u0, _, _ = _inputs(stepper, 1)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        bridge.rollout(stepper, u0, n)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        bridge.rollout_grouped([(stepper, slice(None))], u0, n)
+
+
+# ------------------------------------------------------------------ second derivatives
+ONCE = "once-differentiable"
+
+
+def test_gradgradcheck_raises_the_clear_error_and_gradcheck_still_passes():
+    stepper = adjointsim.get("burgers1d-rusanov").default()
+    u0, _, _ = _inputs(stepper, 2)
+
+    def f(u):
+        return bridge.rollout(stepper, u, 2)
+
+    assert torch.autograd.gradcheck(f, (u0,), eps=1e-6, atol=1e-6, rtol=1e-4)
+    with pytest.raises(RuntimeError, match=f"burgers1d-rusanov.*{ONCE}.*finite differences"):
+        torch.autograd.gradgradcheck(f, (u0,))
+
+
+@pytest.mark.parametrize("objective", ["square", "linear"])
+def test_gradient_penalty_raises_instead_of_dropping_its_term(objective):
+    """The issue's case: a gradient penalty through a nonlinear solver. Its second derivative
+    is not zero even when the objective is linear in the output (then the incoming cotangent
+    does not require grad, and torch's once_differentiable would return a graph-less gradient
+    whose penalty term is silently lost)."""
+    stepper = adjointsim.get("burgers1d-rusanov").default()
+    u0, _, _ = _inputs(stepper, 3)
+    out = bridge.rollout(stepper, u0, 3)
+    loss = out.square().sum() if objective == "square" else out.sum()
+    (g,) = torch.autograd.grad(loss, u0, create_graph=True)
+    assert g.requires_grad
+    with pytest.raises(RuntimeError, match=ONCE):
+        (loss + g.square().sum()).backward()
+
+
+def test_grouped_rollout_is_once_differentiable_too():
+    stepper = adjointsim.get("burgers1d-rusanov").default()
+    u0, _, _ = _inputs(stepper, 1, batch=3)
+
+    def f(u):
+        return bridge.rollout_grouped([(stepper, np.array([0, 2])), (stepper, [1])], u, 1)
+
+    with pytest.raises(RuntimeError, match=ONCE):
+        torch.autograd.gradgradcheck(f, (u0,))
+
+
+def test_create_graph_is_fine_when_the_second_backward_avoids_the_solver():
+    """d/du0 of (d/dw L)² with L = Σ w · S(u0): the second pass runs the solver's first-order
+    adjoint only, so the answer is exact: 2 (Σ S(u0)) · S'(u0)^T 1."""
+    stepper = adjointsim.get("burgers1d-rusanov").default()
+    u0, _, _ = _inputs(stepper, 2)
+    w = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
+    out = bridge.rollout(stepper, u0, 2)
+    g_w, _ = torch.autograd.grad((w * out).sum(), (w, u0), create_graph=True)
+    (got,) = torch.autograd.grad(g_w.square(), u0)
+    (jt1,) = torch.autograd.grad(bridge.rollout(stepper, u0, 2).sum(), u0)
+    torch.testing.assert_close(got, 2.0 * out.sum().detach() * jt1)
+
+
+# ------------------------------------------------------------------ grouped rollouts
+def test_groups_must_partition_the_batch():
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u0, _, _ = _inputs(stepper, 1, batch=5)
+    cases = {
+        "rows \\[2, 4\\] are in no group": [(stepper, [0, 1]), (stepper, np.array([3]))],
+        "rows \\[1\\] are in more than one group": [(stepper, [0, 1, 2]), (stepper, [1, 3, 4])],
+        "rows \\[-1, 7\\] are outside the batch 0..4": [(stepper, [0, 1, 2, 3, 4, 7, -1])],
+        "boolean row mask needs shape \\(5,\\)": [(stepper, np.ones(4, dtype=bool))],
+        "1-D integer array": [(stepper, np.array([0.0, 1.0]))],
+        "in no group": [],
+    }
+    for message, groups in cases.items():
+        with pytest.raises(ValueError, match=message):
+            bridge.rollout_grouped(groups, u0, 1)
+
+
+def test_grouped_rollout_with_empty_groups_masks_and_zero_steps():
+    small = adjointsim.get("diffusion1d-ftcs")(n=16, nu=0.05)
+    large = adjointsim.get("diffusion1d-ftcs")(n=16, nu=0.1)
+    u0, _, _ = _inputs(small, 2, batch=4)
+    mask = np.array([True, False, True, False])
+    groups = [(small, mask), (large, np.array([], dtype=int)), (large, slice(1, None, 2))]
+
+    def f(u):
+        return bridge.rollout_grouped(groups, u, 2)
+
+    assert torch.autograd.gradcheck(f, (u0,), eps=1e-6, atol=1e-6, rtol=1e-4)
+    out = f(u0)
+    torch.testing.assert_close(out[mask], bridge.rollout(small, u0[mask].detach(), 2))
+    torch.testing.assert_close(out[1::2], bridge.rollout(large, u0[1::2].detach().contiguous(), 2))
+    same = bridge.rollout_grouped(groups, u0, 0)
+    torch.testing.assert_close(same, u0.detach(), rtol=0, atol=0)
+    (g,) = torch.autograd.grad(same.sum(), u0)
+    torch.testing.assert_close(g, torch.ones_like(u0))
+    empty = u0[:0].detach().requires_grad_()
+    out = bridge.rollout_grouped([(small, slice(None))], empty, 2)
+    assert out.shape == empty.shape
+    (g,) = torch.autograd.grad(out.sum(), empty)
+    assert g.shape == empty.shape

@@ -5,12 +5,28 @@ calls the stepper's hand-written adjoint, never autograd through the solver. Whe
 needs a gradient (evaluation, ``torch.no_grad()``, NOG's detached solver calls) the forward
 stores nothing; otherwise it keeps the trajectory, or only checkpoints when ``checkpoint`` is
 set, so that the backward pass does not recompute it.
+
+A closed loop calls the solver once per step, so the per-call cost matters: the inputs are
+validated once, in the forward pass (the stepper's own checks of shape, dtype and finiteness;
+the bridge adds only the torch-specific ones: device, contiguity), and the backward pass hands
+the validated arrays straight to the stepper's adjoint sweep instead of validating them again
+through :meth:`Stepper.vjp`.
+
+The adjoint is once-differentiable: differentiating through the backward pass
+(``create_graph=True`` followed by a backward through the gradient, as in a gradient penalty,
+a Hessian-vector product or ``gradgradcheck``) raises a clear error instead of silently
+treating the solver's second derivatives as zero.
 """
 
 from __future__ import annotations
 
+import functools
+import numbers
+from typing import NamedTuple
+
 import numpy as np
 import torch
+from torch._C import _functions as _torch_functions
 
 from adjointsim import Stepper
 
@@ -19,13 +35,19 @@ ADJOINT_CALLS = {"count": 0}
 
 
 def _as_numpy(t: torch.Tensor | None, what: str, dtype: torch.dtype | None) -> np.ndarray | None:
+    """The torch-side checks (the stepper checks shape, dtype and finiteness itself)."""
     if t is None:
         return None
-    if t.device.type != "cpu":
+    if not t.is_cpu:
         raise ValueError(
             f"{what} is on {t.device}; adjointsim's solvers run on the CPU: pass {what}.cpu()"
         )
-    if dtype is not None and t.dtype != dtype:
+    if dtype is None:
+        if t.dtype not in (torch.float32, torch.float64):
+            raise TypeError(
+                f"{what} has dtype {t.dtype}; expected torch.float32 or torch.float64"
+            )
+    elif t.dtype != dtype:
         raise TypeError(
             f"{what} has dtype {t.dtype} but the state is {dtype}; cast it with .to({dtype})"
         )
@@ -34,73 +56,242 @@ def _as_numpy(t: torch.Tensor | None, what: str, dtype: torch.dtype | None) -> n
     return t.detach().numpy()
 
 
+def _check_steps(n: object) -> int:
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
+        raise ValueError(
+            f"the number of steps n must be a non-negative integer, not {n!r} "
+            f"({type(n).__name__})"
+        )
+    return int(n)
+
+
+class _Saved(NamedTuple):
+    """What the backward pass of one stepper's rollout needs (validated, private copies)."""
+
+    stepper: Stepper
+    n: int
+    u0: np.ndarray  # (B, C, *grid)
+    controls: np.ndarray  # (n, B, *control_shape), or a zero-length first axis
+    params: np.ndarray
+    trajectory: np.ndarray | None  # u_0 .. u_n, or None to recompute from checkpoints
+    checkpoint: int | None
+
+
+def _forward(
+    stepper: Stepper,
+    n: int,
+    u0: np.ndarray,
+    controls: np.ndarray | None,
+    params: np.ndarray | None,
+    keep_all: bool,
+    grad: bool,
+    checkpoint: int | None = None,
+) -> tuple[np.ndarray, _Saved | None]:
+    """Validate once and roll out. Returns (u_n, or u_0 .. u_n if ``keep_all``; saved state).
+
+    The returned array never shares memory with what the backward pass reverses, and the saved
+    arrays never share memory with the caller's tensors: in-place edits after this call cannot
+    change the gradient.
+    """
+    u = stepper._check_state(u0, "u0")
+    c = stepper._check_controls(controls, n, u)
+    p = stepper.param_array(params, u.dtype)
+    store = grad and checkpoint is None
+    if n == 0 or u.shape[0] == 0:
+        # Nothing to advance: no kernel call (u_n = u_0, and an empty batch stays empty).
+        states = np.broadcast_to(u, (n + 1, *u.shape)).copy()
+    else:
+        states = stepper._run(u, n, c, p, keep_all=keep_all or store)
+        stepper._raise_if_nonfinite(states, keep_all or store, u, c, p)
+    if keep_all:
+        out = states.copy() if store else states
+    elif states.shape[0] == n + 1:
+        out = states[n].copy() if store else states[n]
+    else:
+        out = states[n % 2]  # the ping-pong buffer of an unstored rollout
+    saved = None
+    if grad:
+        saved = _Saved(
+            stepper, n, states[0] if store else u.copy(), c.copy(),
+            p if params is None else p.copy(),  # the scene's own array is never written
+            states if store else None, checkpoint,
+        )
+    return out, saved
+
+
+@functools.lru_cache(maxsize=64)
+def _cotangent_map(n: int, keep_all: bool) -> np.ndarray:
+    """Row of each state's cotangent: every state's, or only u_n's (row 0)."""
+    if keep_all:
+        return np.arange(n + 1, dtype=np.int64)
+    cmap = np.full(n + 1, -1, dtype=np.int64)
+    cmap[n] = 0
+    return cmap
+
+
+def _backward(
+    saved: _Saved, grad: np.ndarray, keep_all: bool, want_params: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Cotangents of (u0, controls, params) from the output's cotangent ``grad``."""
+    stepper, n, u0, c, p, trajectory, checkpoint = saved
+    cot = np.ascontiguousarray(grad)
+    if n == 0 or u0.shape[0] == 0:
+        # A copy: torch may accumulate into a returned gradient in place.
+        g_u = cot.sum(axis=0) if keep_all else cot.copy()
+        g_p = np.zeros(p.shape, dtype=p.dtype) if want_params else None
+        return g_u, np.zeros_like(c), g_p
+    # Stepper.vjp minus its validation (done in the forward pass); positional, as vjp calls it
+    # (subclasses wrap _vjp with *args).
+    g = stepper._vjp(
+        u0, n, c, p, cot if keep_all else cot[None], _cotangent_map(n, keep_all), want_params,
+        checkpoint, True, trajectory,
+    )
+    g_p = None
+    if want_params:
+        g_p = np.array([g.params[k] for k in stepper.param_names], dtype=grad.dtype)
+    return g.state, g.controls, g_p
+
+
+def _once_differentiable(names: list[str], grads: tuple, sources: tuple) -> tuple:
+    """Let a second differentiation through the adjoint fail loudly, and only then.
+
+    ``sources`` are the tensors the gradients depend on: the incoming cotangent and the node's
+    inputs. Under ``create_graph=True`` the gradients come out of a node that raises when a
+    backward pass reaches it and whose edges lead to every source, so any later backward pass
+    that wants a gradient of a source through these gradients reaches it. torch's
+    ``once_differentiable`` links its error node to fresh leaves instead and only when the
+    cotangent requires grad: a gradient penalty on ``out.sum()`` would still lose its term, and
+    ``gradgradcheck``, asking for gradients of the inputs, would get zeros. Graphs whose second
+    backward does not pass through the solver are unaffected.
+    """
+    if not torch.is_grad_enabled():
+        return grads
+    tensors = [g for g in grads if g is not None]
+    links = [s for s in sources if s is not None and s.requires_grad]
+    if not tensors or not links:
+        return grads
+    solver = ", ".join(sorted(set(names)))
+    error = _torch_functions.DelayedError(
+        f"train.bridge ({solver}): the solver's backward pass is a hand-written discrete "
+        "adjoint and is once-differentiable; second derivatives through it (a backward pass "
+        "through a gradient taken with create_graph=True: gradient penalties, Hessian-vector "
+        "products, gradgradcheck) are not available. Use a first-order objective, or finite "
+        "differences of the gradient.",
+        len(tensors) + len(links),
+    )
+    wrapped = iter(error(*tensors, *links))
+    return tuple(None if g is None else next(wrapped) for g in grads)
+
+
+class _Config(NamedTuple):
+    """The non-tensor arguments of one rollout node, passed as one (fewer arguments for torch's
+    per-call argument handling)."""
+
+    stepper: Stepper
+    n: int
+    keep_all: bool
+    checkpoint: int | None
+    step: bool  # controls of shape (B, ...) for one step, not (n, B, ...)
+
+
 class _Rollout(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, stepper, n, keep, checkpoint, u0, controls, params):
+    def forward(ctx, cfg, u0, controls, params):
         u = _as_numpy(u0, "u0", None)
-        if u0.dtype not in (torch.float32, torch.float64):
-            raise TypeError(f"u0 has dtype {u0.dtype}; expected torch.float32 or torch.float64")
-        c = _as_numpy(controls, "controls", u0.dtype)
+        c = _as_numpy(controls, "control" if cfg.step else "controls", u0.dtype)
+        if cfg.step and c is not None:
+            c = c[None]
         p = _as_numpy(params, "params", u0.dtype)
-        grad = any(ctx.needs_input_grad[4:])
-        store = grad and checkpoint is None
-        states = stepper.rollout(u, n, c, p, keep="all" if store or keep == "all" else "last")
-        ctx.stepper, ctx.n, ctx.keep, ctx.checkpoint = stepper, n, keep, checkpoint
-        if grad:
-            # Copies, so that in-place edits of the inputs or the output after this call cannot
-            # change what the backward pass reverses (the arrays share memory with tensors).
-            u, c, p = (None if a is None else a.copy() for a in (u, c, p))
-            ctx.arrays = (u, c, p, states if store else None)
-        if store:
-            return torch.from_numpy(states.copy() if keep == "all" else states[-1].copy())
-        return torch.from_numpy(states)
+        grad = any(ctx.needs_input_grad)
+        out, ctx.saved = _forward(cfg.stepper, cfg.n, u, c, p, cfg.keep_all, grad, cfg.checkpoint)
+        # The inputs themselves (not their values: those are copied in ctx.saved), only to link
+        # a second differentiation to them; inputs, so no reference cycle.
+        ctx.cfg, ctx.inputs = cfg, (u0, controls, params)
+        return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad):
-        u, c, p, trajectory = ctx.arrays
-        n = ctx.n
-        cot = np.ascontiguousarray(grad.detach().numpy())
         ADJOINT_CALLS["count"] += 1
-        g = ctx.stepper.vjp(
-            u, n, cot, c, p,
-            wrt_params=ctx.needs_input_grad[6],
-            checkpoint=ctx.checkpoint,
-            trajectory=trajectory,
+        _, want_u, want_c, want_p = ctx.needs_input_grad
+        cfg = ctx.cfg
+        g_u, g_c, g_p = _backward(ctx.saved, grad.detach().numpy(), cfg.keep_all, want_p)
+        grads = (
+            torch.from_numpy(g_u) if want_u else None,
+            torch.from_numpy(g_c[0] if cfg.step else g_c) if want_c else None,
+            torch.from_numpy(g_p) if want_p else None,
         )
-        grad_u = torch.from_numpy(g.state) if ctx.needs_input_grad[4] else None
-        grad_c = torch.from_numpy(g.controls) if ctx.needs_input_grad[5] else None
-        grad_p = None
-        if ctx.needs_input_grad[6]:
-            grad_p = torch.tensor([g.params[k] for k in ctx.stepper.param_names], dtype=grad.dtype)
-        return None, None, None, None, grad_u, grad_c, grad_p
+        return (None, *_once_differentiable([cfg.stepper.name], grads, (grad, *ctx.inputs)))
+
+
+def _check_partition(groups: list[tuple[Stepper, np.ndarray | slice]], batch: int) -> list:
+    """Each group's rows (a slice stays a slice: a view, no gather), after checking that the
+    groups cover every row of the batch exactly once."""
+    indices, covered = [], []
+    for i, (_, rows) in enumerate(groups):
+        if isinstance(rows, slice):
+            indices.append(rows)
+            covered.append(np.arange(batch)[rows])
+            continue
+        idx = np.asarray(rows)
+        if idx.dtype == bool:
+            if idx.shape != (batch,):
+                raise ValueError(
+                    f"group {i}: a boolean row mask needs shape ({batch},), not {idx.shape}"
+                )
+            idx = np.flatnonzero(idx)
+        elif idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
+            raise ValueError(
+                f"group {i}: rows must be a slice, a 1-D integer array or a boolean mask, "
+                f"not {idx.dtype} of shape {idx.shape}"
+            )
+        idx = idx.astype(np.intp, copy=False)
+        outside = idx[(idx < 0) | (idx >= batch)]
+        if outside.size:
+            raise ValueError(
+                f"group {i}: rows {sorted(set(outside.tolist()))} are outside the batch "
+                f"0..{batch - 1}"
+            )
+        indices.append(idx)
+        covered.append(idx)
+    counts = np.bincount(np.concatenate([np.zeros(0, np.intp), *covered]), minlength=batch)
+    missing, repeated = np.flatnonzero(counts == 0), np.flatnonzero(counts > 1)
+    if missing.size or repeated.size:
+        problems = []
+        if missing.size:
+            problems.append(f"rows {missing.tolist()} are in no group")
+        if repeated.size:
+            problems.append(f"rows {repeated.tolist()} are in more than one group")
+        raise ValueError(
+            "the groups must partition the batch (every row in exactly one group): "
+            + "; ".join(problems)
+        )
+    return indices
 
 
 class _GroupedRollout(torch.autograd.Function):
     @staticmethod
     def forward(ctx, groups, n, u0):
         u = _as_numpy(u0, "u0", None)
-        store = ctx.needs_input_grad[2]
+        indices = _check_partition(groups, u.shape[0])
+        grad = ctx.needs_input_grad[2]
         out = np.empty_like(u)
-        inputs, trajectories = [], []
-        for stepper, rows in groups:
-            part = np.array(u[rows])  # a copy: the backward pass must see u0 as it was
-            states = stepper.rollout(part, n, keep="all" if store else "last")
-            out[rows] = states[-1] if store else states
-            inputs.append(part)
-            trajectories.append(states if store else None)
-        ctx.groups, ctx.n, ctx.arrays = groups, n, (inputs, trajectories)
+        ctx.saved, ctx.u0 = [], u0
+        for (stepper, _), rows in zip(groups, indices, strict=True):
+            part, saved = _forward(stepper, n, u[rows], None, None, False, grad)
+            out[rows] = part
+            ctx.saved.append((rows, saved))
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad):
-        inputs, trajectories = ctx.arrays
         cot = grad.detach().numpy()
-        out = np.empty_like(cot)
+        out = np.empty(cot.shape, dtype=cot.dtype)
         ADJOINT_CALLS["count"] += 1
-        for (stepper, rows), part, states in zip(ctx.groups, inputs, trajectories, strict=True):
-            g = stepper.vjp(part, ctx.n, np.ascontiguousarray(cot[rows]), trajectory=states)
-            out[rows] = g.state
-        return None, None, torch.from_numpy(out)
+        for rows, saved in ctx.saved:
+            out[rows] = _backward(saved, cot[rows], False, False)[0]
+        names = [saved.stepper.name for _, saved in ctx.saved]
+        grads = _once_differentiable(names, (torch.from_numpy(out),), (grad, ctx.u0))
+        return (None, None, *grads)
 
 
 def rollout_grouped(
@@ -108,12 +299,12 @@ def rollout_grouped(
 ) -> torch.Tensor:
     """Differentiable rollout of a batch whose rows belong to different scenes.
 
-    ``groups`` pairs each stepper with the batch rows it advances (together a partition of the
-    batch), e.g. one KS domain size each. It is one autograd node whatever the number of
-    groups: a batch mixing six scenes pays torch's per-node cost once, not six times, and
-    needs no gather or scatter in torch.
+    ``groups`` pairs each stepper with the batch rows it advances (a slice, an integer array or
+    a boolean mask; together a partition of the batch, checked), e.g. one KS domain size each.
+    It is one autograd node whatever the number of groups: a batch mixing six scenes pays
+    torch's per-node cost once, not six times, and needs no gather or scatter in torch.
     """
-    return _GroupedRollout.apply(groups, n, u0)
+    return _GroupedRollout.apply(groups, _check_steps(n), u0)
 
 
 def rollout(
@@ -129,11 +320,13 @@ def rollout(
 
     ``params`` is a 1-D tensor in ``stepper.param_names`` order (e.g. a learnable viscosity);
     None uses the scene's values. ``keep="all"`` returns u_0 .. u_n; ``checkpoint`` bounds the
-    number of states held for the backward pass (see :meth:`Stepper.vjp`).
+    number of states held for the backward pass (see :meth:`Stepper.vjp`). ``n = 0`` returns
+    a copy of ``u0`` (shape (1, B, ...) with ``keep="all"``).
     """
     if keep not in ("last", "all"):
         raise ValueError(f"keep must be 'last' or 'all', not {keep!r}")
-    return _Rollout.apply(stepper, n, keep, checkpoint, u0, controls, params)
+    cfg = _Config(stepper, _check_steps(n), keep == "all", checkpoint, False)
+    return _Rollout.apply(cfg, u0, controls, params)
 
 
 def step(
@@ -143,4 +336,4 @@ def step(
     params: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Differentiable single step; ``control`` has shape (B, *control_shape)."""
-    return rollout(stepper, u, 1, None if control is None else control.unsqueeze(0), params)
+    return _Rollout.apply(_Config(stepper, 1, False, None, True), u, control, params)
