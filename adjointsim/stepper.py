@@ -237,8 +237,15 @@ class Stepper:
         dtype: Any,
     ) -> np.ndarray:
         """Scene parameters in kernel order, as an array of the state's ``dtype``, checked
-        against the scheme's stability limits."""
+        against the scheme's stability limits.
+
+        The scene's own values (``params=None``) are checked once per dtype and the array is
+        reused (a controller asks for them every step): do not write to it."""
         if params is None:
+            cache = self.__dict__.setdefault("_param_arrays", {})
+            hit = cache.get(dtype)
+            if hit is not None and hit[0] == self.param_values:
+                return hit[1]
             values = np.array(self.param_values, dtype=np.float64)
         elif isinstance(params, Mapping):
             unknown = set(params) - set(self.param_names)
@@ -261,7 +268,10 @@ class Stepper:
         if not np.all(np.isfinite(values)):
             raise ValueError(f"{self.name}: parameters {values} must be finite")
         self.check_params(values)
-        return np.ascontiguousarray(values, dtype=dtype)
+        out = np.ascontiguousarray(values, dtype=dtype)
+        if params is None:
+            cache[dtype] = (self.param_values, out)
+        return out
 
     def _check_state(self, u: np.ndarray, what: str) -> np.ndarray:
         u = np.asarray(u)
