@@ -251,6 +251,8 @@ def _digest(payload: Any) -> str:
             t = x.detach().cpu().contiguous()
             h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
             h.update(t.reshape(-1).view(torch.uint8).numpy())
+        elif isinstance(x, list) and all(map(_plain, x)):  # the history: one repr, 3-4x faster
+            h.update(b"R" + repr(x).encode() + b";")
         elif isinstance(x, dict):
             h.update(b"{")
             for k, v in x.items():
@@ -267,6 +269,16 @@ def _digest(payload: Any) -> str:
 
     walk(payload)
     return h.hexdigest()
+
+
+def _plain(x: Any) -> bool:
+    """A scalar, or a dict of scalars (no tensor inside)."""
+    if isinstance(x, dict):
+        return all(type(k) in _SCALARS and type(v) in _SCALARS for k, v in x.items())
+    return type(x) in _SCALARS
+
+
+_SCALARS = (int, float, str, bool, type(None))
 
 
 def save_checkpoint(payload: dict, path: str | Path) -> None:
