@@ -39,7 +39,7 @@ SIZES = {
                 "epochs": {"cartpole": 60, "guidance": 60, "quantum": 15}},
     "full": {"tasks": "all", "modes": _MODES, "clips": ("none", "value", "norm"), "seeds": 3,
              "train": 256, "test": 256, "batch": 8,
-             "epochs": {"cartpole": 10, "guidance": 10, "quantum": 3}},
+             "epochs": {"cartpole": 16, "guidance": 16, "quantum": 5}},
 }
 
 
