@@ -27,14 +27,18 @@ Everything else here (validation, checkpointing, non-finite detection) is shared
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from math import comb
 from typing import Any, ClassVar
 
 import numba
 import numpy as np
 
 FLOAT_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+#: smallest ``checkpoint`` budget: u_0 and the two-state buffer the forward kernel advances in
+MIN_CHECKPOINT = 3
 
 
 class NonFiniteStateError(FloatingPointError):
@@ -103,6 +107,10 @@ class Stepper:
     #: differentiable scene parameters and their values, in kernel order
     param_names: tuple[str, ...] = ()
     param_values: tuple[float, ...] = ()
+    #: True while a vjp's keep-all forward passes record stage fields that the adjoint kernel
+    #: reuses (set by the steppers that keep such a tape); the adjoint sweep then also runs the
+    #: last step of each segment it recomputes, when the budget has room, so the tape covers it
+    _recording: bool = False
 
     # ----------------------------------------------------------------- subclass hooks
     def _forward(self, states: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray) -> None:
@@ -164,7 +172,9 @@ class Stepper:
         control: np.ndarray | None = None,
         params: Mapping[str, float] | Sequence[float] | np.ndarray | None = None,
     ) -> np.ndarray:
-        """One step: ``u`` of shape (B, C, *grid), ``control`` of shape (B, *control_shape)."""
+        """One step: ``u`` of shape (B, C, *grid), ``control`` of shape (B, *control_shape).
+
+        An empty batch (B = 0) gives an empty result."""
         ctrl = None if control is None else np.asarray(control)[None]
         return self.rollout(u, 1, ctrl, params)
 
@@ -180,7 +190,9 @@ class Stepper:
 
         ``controls``: shape (n, B, *control_shape) or None. ``params`` overrides the scene's
         parameter values. ``keep="last"`` returns u_n (B, C, *grid); ``keep="all"`` returns
-        every state u_0 .. u_n, shape (n + 1, B, C, *grid).
+        every state u_0 .. u_n, shape (n + 1, B, C, *grid). ``n = 0`` returns a copy of ``u0``
+        (``keep="all"``: shape (1, B, C, *grid)); an empty batch (B = 0) an empty array of the
+        same shape. Neither calls the kernels.
         """
         if keep not in ("last", "all"):
             raise ValueError(f"keep must be 'last' or 'all', not {keep!r}")
@@ -189,7 +201,7 @@ class Stepper:
         ctrl = self._check_controls(controls, n, u0)
         p = self.param_array(params, u0.dtype)
         states = self._run(u0, n, ctrl, p, keep_all=keep == "all")
-        self._raise_if_nonfinite(states, keep == "all", u0, ctrl, p)
+        self._raise_if_nonfinite(states, keep == "all", u0, ctrl, p, n=n)
         return states if keep == "all" else states[n % 2]
 
     def vjp(
@@ -206,18 +218,28 @@ class Stepper:
         """Cotangents of u0, the controls and (if ``wrt_params``) the scene parameters.
 
         ``cotangents`` is one array of the state's shape (the cotangent of u_n), an array of
-        shape (n + 1, B, C, *grid) (one per state), or a mapping from step index (negative
-        counts from n) to the cotangent of that state. ``checkpoint=s`` holds at most ``s``
-        states at once (s ≥ 4) and recomputes the rest from checkpoints, nesting segments when
-        one level does not fit (memory s states, about log_s(n) extra forward passes). By
-        default every state is kept. ``trajectory``, the states u_0 .. u_n of
+        shape (n + 1, B, C, *grid) (one per state), or a mapping from step index to the
+        cotangent of that state: 0 .. n, or -(n + 1) .. -1 counting from the end (-1 is u_n);
+        keys naming the same step are summed.
+
+        ``checkpoint=s`` reverses the rollout holding at most ``s`` states (s ≥ 3) and
+        recomputes the others with binomial checkpointing (Griewank & Walther's Revolve
+        schedule), which is optimal in forward steps; see :class:`_AdjointSweep` for what is
+        counted and the cost (about t·n forward steps where C(s - 2 + t, t) ≥ n). By default
+        every state is kept. ``trajectory``, the states u_0 .. u_n of
         ``rollout(..., keep="all")`` with the same inputs, skips the forward pass.
+
+        ``n = 0`` returns the cotangent of u_0 (and zero control and parameter cotangents); an
+        empty batch (B = 0) returns empty cotangents and zero parameter cotangents. Neither
+        calls the kernels.
         """
         u0 = self._check_state(u0, "u0")
         n = _check_steps(n)
         ctrl = self._check_controls(controls, n, u0)
         p = self.param_array(params, u0.dtype)
         cot, cmap = self._check_cotangents(cotangents, n, u0)
+        if trajectory is not None:
+            trajectory = np.asarray(trajectory)
         if trajectory is not None and (
             trajectory.shape != (n + 1, *u0.shape) or trajectory.dtype != u0.dtype
         ):
@@ -319,44 +341,56 @@ class Stepper:
     def _check_cotangents(
         self, cotangents: np.ndarray | Mapping[int, np.ndarray], n: int, u0: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Stack the cotangents and map each step index to its row (or -1)."""
+        """Stack the cotangents, one row per step named, and map each step to its row (or -1)."""
         if isinstance(cotangents, Mapping):
-            items = {}
-            for k, v in cotangents.items():
-                kk = int(k) + (n + 1 if int(k) < 0 else 0)
-                if not 0 <= kk <= n:
-                    raise ValueError(f"cotangent step {k} is outside the rollout 0..{n}")
-                items[kk] = v
-            steps = sorted(items)
-            arrays = [items[k] for k in steps]
+            rows: dict[int, np.ndarray] = {}
+            for key, value in cotangents.items():
+                k = _cotangent_step(key, n)
+                a = self._cotangent(value, u0.shape, u0.dtype, f"the cotangent of step {key!r}")
+                rows[k] = rows[k] + a if k in rows else a  # keys naming one step add up
+            steps = sorted(rows)
+            cot = np.zeros((len(steps), *u0.shape), dtype=u0.dtype)
+            for i, k in enumerate(steps):
+                cot[i] = rows[k]
         else:
             c = np.asarray(cotangents)
             if c.shape == u0.shape:
-                steps, arrays = [n], [c]
+                steps, cot = [n], self._cotangent(c, c.shape, u0.dtype, "the cotangent")[None]
             elif c.shape == (n + 1, *u0.shape):
-                steps, arrays = list(range(n + 1)), list(c)
+                steps = list(range(n + 1))
+                cot = self._cotangent(c, c.shape, u0.dtype, "the cotangents")
             else:
                 raise ValueError(
                     f"{self.name}: cotangents have shape {c.shape}; expected {u0.shape} "
                     f"(the last state) or {(n + 1, *u0.shape)} (every state), or a dict "
                     "{step: array}"
                 )
-        for a in arrays:
-            if np.shape(a) != u0.shape:
-                raise ValueError(
-                    f"{self.name}: a cotangent has shape {np.shape(a)}; expected {u0.shape}"
-                )
-        cot = np.ascontiguousarray(np.stack(arrays).astype(u0.dtype, copy=False))
         cmap = np.full(n + 1, -1, dtype=np.int64)
         cmap[steps] = np.arange(len(steps))
-        return cot, cmap
+        return np.ascontiguousarray(cot), cmap
+
+    def _cotangent(self, value: Any, shape: tuple, dtype: np.dtype, what: str) -> np.ndarray:
+        """``value`` as a finite real array of ``shape``, in the state's ``dtype``."""
+        a = np.asarray(value)
+        if a.shape != shape:
+            raise ValueError(f"{self.name}: {what} has shape {a.shape}; expected {shape}")
+        if a.dtype.kind not in "iuf":
+            raise TypeError(f"{self.name}: {what} has dtype {a.dtype}; expected a real array")
+        a = a.astype(dtype, copy=False)
+        if not _all_finite(a):
+            raise ValueError(f"{self.name}: {what} has non-finite values")
+        return a
 
     def _run(
         self, u0: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray, keep_all: bool
     ) -> np.ndarray:
-        states = np.empty((n + 1 if keep_all else 2, *u0.shape), dtype=np.result_type(u0, p))
+        """u_0 .. u_n (``keep_all``), or the ping-pong buffer holding u_n in slot n % 2 (one
+        slot when n = 0). Every slot returned is written."""
+        slots = n + 1 if keep_all else min(n + 1, 2)
+        states = np.empty((slots, *u0.shape), dtype=np.result_type(u0, p))
         states[0] = u0
-        self._forward(states, n, ctrl, p)
+        if n and u0.shape[0]:  # zero steps or an empty batch: nothing for the kernels to do
+            self._forward(states, n, ctrl, p)
         return states
 
     def _vjp(
@@ -372,22 +406,31 @@ class Stepper:
         controlled: bool,
         trajectory: np.ndarray | None = None,
     ) -> Cotangents:
-        if checkpoint is not None and checkpoint < 4:
-            raise ValueError(f"checkpoint must hold at least 4 states, not {checkpoint}")
+        if checkpoint is not None and (
+            isinstance(checkpoint, bool) or int(checkpoint) != checkpoint
+            or checkpoint < MIN_CHECKPOINT
+        ):
+            raise ValueError(
+                f"checkpoint must be an integer of at least {MIN_CHECKPOINT} stored states "
+                f"(u_0 and the two-state buffer the forward kernel advances in), not "
+                f"{checkpoint!r}; pass None to keep every state"
+            )
         dtype = np.result_type(u0, p, cot)
         ubar = np.zeros(u0.shape, dtype=dtype)
         if cmap[n] >= 0:
             ubar += cot[cmap[n]]
         cbar = np.zeros(ctrl.shape, dtype=dtype)
         pbar = np.zeros(len(self.param_names), dtype=np.result_type(np.float64, dtype))
-        budget = n + 2 if checkpoint is None else int(checkpoint)
-        sweep = _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params)
-        if trajectory is not None:
-            sweep.reverse_stored(np.ascontiguousarray(trajectory[:n]), 0, n)
-        else:
-            sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget)
+        if n and u0.shape[0]:  # else nothing to reverse: no kernel call
+            sweep = _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params)
+            if trajectory is not None:
+                sweep.reverse_stored(np.ascontiguousarray(trajectory[:n]), 0, n)
+            else:
+                budget = n + 2 if checkpoint is None else int(checkpoint)
+                sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget - 1)
         if not _all_finite(ubar):
-            self._raise_if_nonfinite(self._run(u0, n, ctrl, p, keep_all=False), False, u0, ctrl, p)
+            states = self._run(u0, n, ctrl, p, keep_all=False)
+            self._raise_if_nonfinite(states, False, u0, ctrl, p, n=n)
             raise FloatingPointError(
                 f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
                 "stayed finite; the cotangents or the rollout length are too large"
@@ -399,34 +442,67 @@ class Stepper:
         )
 
     def _raise_if_nonfinite(
-        self, states: np.ndarray, keep_all: bool, u0: np.ndarray, ctrl: np.ndarray, p: np.ndarray
+        self,
+        states: np.ndarray,
+        keep_all: bool,
+        u0: np.ndarray,
+        ctrl: np.ndarray,
+        p: np.ndarray,
+        n: int | None = None,
     ) -> None:
-        """Zero cost when the rollout stayed finite; otherwise find the first bad step."""
+        """Zero cost when the rollout stayed finite; otherwise find the first bad step.
+
+        ``states`` is what :meth:`_run` returned for the ``n`` steps (for a ping-pong buffer,
+        ``n`` bounds the replay; it defaults to the controls' length or else ``2**24``).
+        """
         if _all_finite(states[-1] if keep_all else states):
             return
         offset = 0
         if not keep_all:
+            if n is None:
+                n = ctrl.shape[0] if ctrl.shape[0] else 2**24
             # Replay in chunks that keep every state until one chunk holds the first bad step.
             u, chunk = u0, 256
-            while True:
-                c = ctrl[offset : offset + chunk] if ctrl.shape[0] else ctrl
-                m = c.shape[0] if ctrl.shape[0] else chunk
+            while offset < n:
+                m = min(chunk, n - offset)
+                c = ctrl[offset : offset + m] if ctrl.shape[0] else ctrl
                 states = self._run(u, m, c, p, keep_all=True)
                 if not _all_finite(states):
                     break
                 u, offset = states[m], offset + m
+            else:
+                raise FloatingPointError(
+                    f"{self.name}: the rollout of {n} steps became non-finite but its replay "
+                    "stayed finite: the kernels are not deterministic for this input"
+                )
         bad = ~np.isfinite(states).reshape(states.shape[0], -1).all(axis=1)
         first = int(np.argmax(bad))
         raise NonFiniteStateError(self.name, offset + first, float(np.abs(states[first - 1]).max()))
 
 
 class _AdjointSweep:
-    """Reverse a rollout segment by segment within a budget of stored states.
+    """Reverse a rollout within a budget of stored states by binomial checkpointing.
 
-    A segment whose states fit the budget is recomputed from its start state with every state
-    kept, then reversed by one adjoint kernel call. A longer one is cut into k pieces whose
-    start states are stored on a forward pass; the pieces are reversed last to first with the
-    budget that remains, recursively, so at most ``budget`` states are alive at once.
+    What the budget counts: every state-sized array the sweep holds at once, namely u_0 (the
+    caller's, kept as the first checkpoint), each stored checkpoint, and the forward kernel's
+    buffer (two states while advancing between checkpoints, m while a segment of m steps is
+    recomputed for one adjoint kernel call), including the moment an advanced state is copied
+    out of that buffer into its checkpoint. Not counted: the adjoint state ū, the cotangents,
+    the controls and their cotangents, and the kernels' own scratch (FFT work arrays, tapes).
+
+    Schedule (Griewank & Walther, ACM TOMS 26, 2000): a segment of m steps that fits the free
+    budget is recomputed whole and reversed by one adjoint call. Otherwise, with S stored
+    states allowed (free budget minus the advancing buffer's second slot), u_j is stored at
+    the split of :func:`_binomial_split`, the part after it is reversed with one state fewer,
+    u_j is released, and the part before it is reversed the same way. With no room left to
+    store a state (S = 1), each step's input is recomputed from the segment start. This is
+    Revolve with S = s - 2 stored states for a budget of s, so the forward steps number
+
+        t·n - β(s - 1, t - 1),   β(a, b) = C(a + b, a),  t the least with β(s - 2, t) ≥ n,
+
+    the fewest possible, plus, for a stepper that records a stage tape (``_recording``), one
+    step per segment recomputed whole with a slot to spare (which spares the adjoint kernel
+    recomputing that segment's stages).
     """
 
     def __init__(self, stepper, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
@@ -443,45 +519,48 @@ class _AdjointSweep:
             self.ubar, self._controls(self.cbar, lo, hi), self.pbar, self.want_p,
         )
 
-    def reverse(self, u_start: np.ndarray, lo: int, hi: int, budget: int) -> None:
-        m = hi - lo
-        if m == 0:
-            return
-        c = self._controls(self.ctrl, lo, hi)
-        if m + 2 <= budget:  # the m + 1 states and the start state they copy
-            trajectory = self.stepper._run(u_start, m, c, self.p, keep_all=True)
-            self.reverse_stored(trajectory[:m], lo, hi)
-            return
-        if budget <= 3:
-            # No room for a nested level: recompute each step's input from the segment start.
-            for j in range(m - 1, -1, -1):
-                c = self._controls(self.ctrl, lo, lo + j)
-                ring = self.stepper._run(u_start, j, c, self.p, False)
-                self.reverse_stored(ring[j % 2][None], lo + j, lo + j + 1)
-            return
-        k = _pieces(m, budget)
-        bounds = [lo + (m * i) // k for i in range(k + 1)]
-        starts, u = [u_start], u_start
-        for a0, a in zip(bounds[:-2], bounds[1:-1]):
-            ring = self.stepper._run(u, a - a0, self._controls(self.ctrl, a0, a), self.p, False)
-            u = ring[(a - a0) % 2].copy()
-            starts.append(u)
-        del ring, u  # only the stored starts may stay alive while the pieces are reversed
-        for i in range(k - 1, -1, -1):
-            # Pieces already reversed have released their start states.
-            self.reverse(starts.pop(), bounds[i], bounds[i + 1], budget - i)
+    def _advance(self, u: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        """The ping-pong buffer after advancing u_lo to u_hi (in slot (hi - lo) % 2)."""
+        return self.stepper._run(u, hi - lo, self._controls(self.ctrl, lo, hi), self.p, False)
+
+    def reverse(self, u: np.ndarray, lo: int, hi: int, free: int) -> None:
+        """Reverse steps lo .. hi - 1 from the stored u = u_lo, holding at most ``free`` more
+        states (free ≥ 2)."""
+        while hi > lo:
+            m = hi - lo
+            if m <= free:
+                # The adjoint kernel needs the inputs u_lo .. u_{hi-1}: m - 1 steps.
+                k = m if self.stepper._recording and m < free else m - 1
+                inputs = self.stepper._run(
+                    u, k, self._controls(self.ctrl, lo, lo + k), self.p, keep_all=True
+                )
+                self.reverse_stored(inputs[:m], lo, hi)
+                return
+            if free == 2:
+                ring = self._advance(u, lo, hi - 1)
+                self.reverse_stored(ring[(m - 1) % 2][None], hi - 1, hi)
+                del ring  # released before the next advance allocates its buffer
+                hi -= 1
+                continue
+            j = _binomial_split(m, free - 1)
+            stored = self._advance(u, lo, lo + j)[j % 2].copy()
+            self.reverse(stored, lo + j, hi, free - 1)
+            del stored
+            hi = lo + j
 
 
-def _pieces(m: int, budget: int) -> int:
-    """Fewest pieces so that one more level fits, else half the budget (and recurse).
+def _binomial_split(m: int, snaps: int) -> int:
+    """Where to store the next checkpoint when reversing m steps with ``snaps`` ≥ 2 stored
+    states (the segment's start among them).
 
-    Piece i is reversed with ``budget - i`` states, so k ≤ budget - 2 leaves the last piece
-    at least 3.
+    With t the least repetition number such that β(snaps, t) = C(snaps + t, t) ≥ m, the part
+    before the split then needs repetition number t - 1 and the part after it t (with one
+    state fewer), which attains the optimum t·m - β(snaps + 1, t - 1) forward steps.
     """
-    for k in range(2, budget - 1):
-        if -(-m // k) + 2 <= budget - (k - 1):
-            return k
-    return max(2, min(budget - 2, budget // 2))
+    t = 1
+    while comb(snaps + t, t) < m:
+        t += 1
+    return min(comb(snaps + t - 1, snaps), m - comb(snaps + t - 2, snaps - 1))
 
 
 @numba.njit(cache=True)
@@ -492,6 +571,20 @@ def _all_finite(a: np.ndarray) -> bool:
         if not np.isfinite(v):
             return False
     return True
+
+
+def _cotangent_step(key: Any, n: int) -> int:
+    """The step a cotangent key names: 0 .. n, or -(n + 1) .. -1 counting from the end."""
+    try:
+        k = operator.index(key)
+    except TypeError:
+        raise TypeError(f"cotangent keys are integer step numbers, not {key!r}") from None
+    if not -(n + 1) <= k <= n:
+        raise ValueError(
+            f"cotangent step {k} is outside the rollout: steps run from 0 (u_0) to {n} "
+            f"(u_n), or from -{n + 1} to -1 counting from the end"
+        )
+    return k % (n + 1)
 
 
 def _check_steps(n: int) -> int:

@@ -94,6 +94,16 @@ def test_zero_steps_is_identity():
     np.testing.assert_array_equal(s.vjp(u, 0, u).state, u)
 
 
+def test_checkpoint_budget_names_its_minimum():
+    s = FTCS(n=12)
+    u = np.random.default_rng(3).standard_normal((1, 1, 12))
+    for bad in (2, 4.5, True):
+        with pytest.raises(ValueError, match="at least 3 stored states"):
+            s.vjp(u, 5, u, checkpoint=bad)
+    np.testing.assert_allclose(s.vjp(u, 5, u, checkpoint=3).state, s.vjp(u, 5, u).state,
+                               rtol=1e-14)
+
+
 def test_cli_list_and_json(capsys):
     assert main(["gradcheck", "--list"]) == 0
     assert "diffusion1d-ftcs" in capsys.readouterr().out.split()
