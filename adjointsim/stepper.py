@@ -27,6 +27,7 @@ Everything else here (validation, checkpointing, non-finite detection) is shared
 
 from __future__ import annotations
 
+import numbers
 import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -407,7 +408,8 @@ class Stepper:
         trajectory: np.ndarray | None = None,
     ) -> Cotangents:
         if checkpoint is not None and (
-            isinstance(checkpoint, bool) or int(checkpoint) != checkpoint
+            isinstance(checkpoint, bool)
+            or not isinstance(checkpoint, numbers.Integral)
             or checkpoint < MIN_CHECKPOINT
         ):
             raise ValueError(
@@ -427,7 +429,7 @@ class Stepper:
                 sweep.reverse_stored(np.ascontiguousarray(trajectory[:n]), 0, n)
             else:
                 budget = n + 2 if checkpoint is None else int(checkpoint)
-                sweep.reverse(u0.astype(dtype, copy=False), 0, n, budget - 1)
+                sweep.reverse(u0.astype(dtype, copy=False), n, budget)
         if not _all_finite(ubar):
             states = self._run(u0, n, ctrl, p, keep_all=False)
             self._raise_if_nonfinite(states, False, u0, ctrl, p, n=n)
@@ -490,13 +492,14 @@ class _AdjointSweep:
     out of that buffer into its checkpoint. Not counted: the adjoint state ū, the cotangents,
     the controls and their cotangents, and the kernels' own scratch (FFT work arrays, tapes).
 
-    Schedule (Griewank & Walther, ACM TOMS 26, 2000): a segment of m steps that fits the free
-    budget is recomputed whole and reversed by one adjoint call. Otherwise, with S stored
-    states allowed (free budget minus the advancing buffer's second slot), u_j is stored at
-    the split of :func:`_binomial_split`, the part after it is reversed with one state fewer,
-    u_j is released, and the part before it is reversed the same way. With no room left to
-    store a state (S = 1), each step's input is recomputed from the segment start. This is
-    Revolve with S = s - 2 stored states for a budget of s, so the forward steps number
+    Schedule (Griewank & Walther, ACM TOMS 26, 2000), from the last stored state u_lo with the
+    steps lo .. hi - 1 still to reverse: a segment that fits the free budget is recomputed
+    whole and reversed by one adjoint call, and u_lo released. Otherwise, with S stored states
+    allowed (the free budget minus the advancing buffer's second slot), u_j is stored at the
+    split of :func:`_binomial_split` and the part after it is reversed first, with one state
+    fewer. With no room left to store a state (S = 1), the input of the last step is
+    recomputed from u_lo. This is Revolve with S = s - 2 stored states for a budget of s, so
+    the forward steps number
 
         t·n - β(s - 1, t - 1),   β(a, b) = C(a + b, a),  t the least with β(s - 2, t) ≥ n,
 
@@ -523,10 +526,12 @@ class _AdjointSweep:
         """The ping-pong buffer after advancing u_lo to u_hi (in slot (hi - lo) % 2)."""
         return self.stepper._run(u, hi - lo, self._controls(self.ctrl, lo, hi), self.p, False)
 
-    def reverse(self, u: np.ndarray, lo: int, hi: int, free: int) -> None:
-        """Reverse steps lo .. hi - 1 from the stored u = u_lo, holding at most ``free`` more
-        states (free ≥ 2)."""
-        while hi > lo:
+    def reverse(self, u0: np.ndarray, n: int, budget: int) -> None:
+        """Reverse the n steps from u_0 holding at most ``budget`` states (≥ 3, u_0 included)."""
+        stored = [(u0, 0, budget - 1)]  # (u_lo, lo, states still free while it is stored)
+        hi = n
+        while hi > 0:
+            u, lo, free = stored[-1]
             m = hi - lo
             if m <= free:
                 # The adjoint kernel needs the inputs u_lo .. u_{hi-1}: m - 1 steps.
@@ -535,18 +540,17 @@ class _AdjointSweep:
                     u, k, self._controls(self.ctrl, lo, lo + k), self.p, keep_all=True
                 )
                 self.reverse_stored(inputs[:m], lo, hi)
-                return
-            if free == 2:
+                del inputs, stored[-1]  # released before the next buffer is allocated
+                hi = lo
+            elif free == 2:
                 ring = self._advance(u, lo, hi - 1)
                 self.reverse_stored(ring[(m - 1) % 2][None], hi - 1, hi)
-                del ring  # released before the next advance allocates its buffer
+                del ring
                 hi -= 1
-                continue
-            j = _binomial_split(m, free - 1)
-            stored = self._advance(u, lo, lo + j)[j % 2].copy()
-            self.reverse(stored, lo + j, hi, free - 1)
-            del stored
-            hi = lo + j
+            else:
+                j = _binomial_split(m, free - 1)
+                stored.append((self._advance(u, lo, lo + j)[j % 2].copy(), lo + j, free - 1))
+            del u
 
 
 def _binomial_split(m: int, snaps: int) -> int:

@@ -212,6 +212,19 @@ def test_defect4_checkpointing_stays_within_the_binomial_bound(n):
         assert g.params["nu"] == pytest.approx(stored.params["nu"], rel=1e-12)
 
 
+def test_checkpointing_is_optimal_for_short_rollouts():
+    stepper = FTCS(n=6)
+    rng = np.random.default_rng(8)
+    u = stepper.random_state(rng, 1)
+    calls = count_kernel_calls(stepper)
+    for n in range(1, 41):
+        w = stepper.random_state(rng, 1)
+        for s in range(MIN_CHECKPOINT, 13):
+            calls["steps"] = 0
+            stepper.vjp(u, n, w, checkpoint=s)
+            assert calls["steps"] == binomial_optimum(n, s), (n, s)
+
+
 @pytest.mark.parametrize("s", [MIN_CHECKPOINT, 4, 5, 8, 16])
 def test_defect4_checkpointing_holds_at_most_s_states(s):
     """Measured with tracemalloc: u_0 and at most s - 1 more states, besides ū and the FTCS
