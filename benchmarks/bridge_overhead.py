@@ -20,7 +20,7 @@ Printed: median µs per call over ``--repeats`` round-robin batches of ``--calls
 bridge's overhead per step, forward alone and forward + backward: bridge − kernel (everything
 above the numerics, torch's autograd machinery included) and bridge − floor (what the bridge
 adds to the cheapest possible custom autograd node: validation, copies, set-up). Target
-(issue 9): ≤ 20 µs per step.
+(issue 9): ≤ 20 µs per step. Times are CPU time of this process (see ``_per_call_us``).
 """
 
 from __future__ import annotations
