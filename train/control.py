@@ -181,11 +181,11 @@ def closed_loop(
     """Run the controller through the simulator; returns the loss and (if ``keep``) the
     states x_0..x_n and controls. One solver call per step through ``train.bridge.step``."""
     flow = flow or GradientFlow("R")
-    x = x0
+    x = flow.start(x0)
     terms: list[torch.Tensor] = []
     states, controls = ([x0], []) if keep else (None, None)
     for t in range(task.steps):
-        c = task.control(net(flow.net(x)))
+        c = task.control(flow.control(net, flow.net(x)))
         x = bridge.step(task.solver, flow.phys(x), c)
         term = task.step_loss(x, c, t)
         if term is not None:

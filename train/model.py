@@ -73,18 +73,26 @@ class NeuralStepper(nn.Module):
     ) -> torch.Tensor:
         """One step; ``flow`` (a :class:`train.unroll.GradientFlow`) stops gradients on the
         state fed into the network (``flow.net``) and into the solver (``flow.phys``)."""
-        net, phys = (flow.net, flow.phys) if flow is not None else (_same, _same)
+        if flow is None:
+            net, phys, control = _same, _same, _call
+        else:
+            net, phys, control = flow.net, flow.phys, flow.control
         if self.setup == "prediction":
-            return self._f(net(u), conditions)
+            return control(self._f, net(u), net(conditions))
         if self.correction == "parallel":
             groups = self.groups(params)
             steps = {stepper.dt for stepper, _ in groups}
             if len(steps) > 1:
                 raise ValueError(f"the parallel correction needs one Δt per batch, got {steps}")
-            return self.solve(phys(u), params, groups) + steps.pop() * self._f(net(u), conditions)
+            return (self.solve(phys(u), params, groups)
+                    + steps.pop() * control(self._f, net(u), net(conditions)))
         v = self.solve(phys(u), params)
-        return v + self._f(net(v), conditions)
+        return v + control(self._f, net(v), net(conditions))
 
 
 def _same(x: torch.Tensor) -> torch.Tensor:
     return x
+
+
+def _call(fn, *inputs: torch.Tensor) -> torch.Tensor:
+    return fn(*inputs)

@@ -11,11 +11,18 @@ One switch, :class:`GradientFlow`, says where gradients stop (Schnell & Thuerey 
 * C (combined): g = where(sign(g_M) == sign(g_R), g_M, 0), element-wise per tensor.
 * ONE: List et al.'s one-step training, R with a horizon of 1.
 
-C needs g_M and g_R. Both come from ONE forward pass: the network input goes through a gate
-whose backward either passes the cotangent (R) or drops it (M); :meth:`GradientFlow.backward`
-runs the backward twice over the same tape with the gate closed, then open. Only the backward
-changes between the two, so this is exactly the reference code's two forward+backward passes
-minus one forward.
+C needs g_M and g_R. Both come from ONE forward pass and ONE backward pass over a doubled
+batch: the loop runs two copies of each state with equal values (:meth:`GradientFlow.start`),
+the R stream on top and the M stream below. Only the top stream feeds the network
+(:meth:`GradientFlow.net`); :meth:`GradientFlow.control` hands the network's output to the top
+stream and a detached leaf of the same value to the bottom one, and both go through the physics
+in one (batched) solver call. One backward pass then gives g_R (the top stream's parameter
+gradient) and the cotangents μ_t of the bottom stream's controls, i.e. the M chain's
+λ_{t+1} ∂S/∂c; g_M = Σ_t μ_t ∂N/∂θ(x_t) is one more network pass over all steps' inputs
+stacked. The loss must be a mean over the batch (both halves then count equally).
+For clarity and the tests, ``gated=True`` instead routes the network input through a gate and
+runs the backward twice (closed: g_M, open: g_R); both give the reference code's two
+forward+backward passes' result.
 
 The final update can be clipped by value or by global norm (``clip``), as the stable-BPTT
 study sweeps it.
@@ -84,29 +91,55 @@ class Update:
 
 
 class GradientFlow:
-    """Where gradients stop in a closed loop: ``net(x)`` / ``phys(x)`` wrap the two uses of a
-    state, :meth:`backward` turns the loss into the mode's update.
+    """Where gradients stop in a closed loop.
 
-    ``diagnose=True`` (any mode) gates the network path like C so that :meth:`backward` also
-    returns g_M and g_R (for the cosine between them), while the update stays the mode's own.
+    A loop written against it calls ``x = flow.start(x0)`` (and on every per-row input that
+    must follow the batch), feeds ``flow.net(x)`` to the network through
+    ``flow.control(fn, *inputs)`` (``fn`` the network, returning the control), feeds
+    ``flow.phys(x)`` to the physics, and ends with :meth:`backward`. ``diagnose=True`` (modes
+    R and M) also computes g_M and g_R, for the cosine between them, while the update stays the
+    mode's own. ``gated=True`` computes C (and the diagnosis) by two backward passes over a
+    gate instead of the doubled batch (the reference implementation for the tests).
     """
 
     def __init__(self, mode: str, clip: str = "none", clip_at: float = 1.0,
-                 diagnose: bool = False):
+                 diagnose: bool = False, gated: bool = False):
         self.name, self.mode = mode, canonical(mode)
         if clip not in CLIPS:
             raise ValueError(f"unknown clip {clip!r}; choose from {', '.join(CLIPS)}")
         if not clip_at > 0:
             raise ValueError(f"clip_at must be > 0, not {clip_at}")
         self.clip, self.clip_at = clip, float(clip_at)
-        self.gated = self.mode == "C" or (diagnose and self.mode in ("R", "M"))
+        both = self.mode == "C" or (diagnose and self.mode in ("R", "M"))
+        self.gated = both and gated
+        self.doubled = both and not gated
         self._switch = _Switch()
+        self._records: list[tuple] = []  # (fn, detached inputs, bottom-stream leaf)
+        self._rows: int | None = None
+
+    def start(self, x: torch.Tensor) -> torch.Tensor:
+        """A per-row input of the loop (state, targets, row parameters), doubled for C."""
+        if not self.doubled:
+            return x
+        self._rows = x.shape[0]
+        return torch.cat([x, x])
 
     def net(self, x: torch.Tensor) -> torch.Tensor:
         """The state as fed into the network."""
+        if self.doubled:
+            return x[: x.shape[0] // 2]
         if self.gated:
             return _Gate.apply(x, self._switch)
         return x.detach() if self.mode in ("M", "S") else x
+
+    def control(self, fn, *inputs: torch.Tensor) -> torch.Tensor:
+        """``fn(*inputs)`` (the network on ``net(x)``), as fed into the physics."""
+        out = fn(*inputs)
+        if not self.doubled:
+            return out
+        leaf = out.detach().requires_grad_()
+        self._records.append((fn, tuple(i.detach() for i in inputs), leaf))
+        return torch.cat([out, leaf])
 
     def phys(self, x: torch.Tensor) -> torch.Tensor:
         """The state as fed into the physics."""
@@ -116,11 +149,14 @@ class GradientFlow:
         """Compute the update of ``params`` from ``loss``, clip it, store it in ``.grad``."""
         params = list(params)
         g_m = g_r = None
-        if self.gated:
+        if self.doubled:
+            g_r, g_m = self._doubled(loss, params)
+        elif self.gated:
             self._switch.open = False
             g_m = _grad(loss, params, retain=True)
             self._switch.open = True
             g_r = _grad(loss, params, retain=False)
+        if g_m is not None:
             if self.mode == "C":
                 grads = [torch.where(torch.sign(a) == torch.sign(b), a, torch.zeros_like(a))
                          for a, b in zip(g_m, g_r)]
@@ -132,6 +168,26 @@ class GradientFlow:
         for p, g in zip(params, grads):
             p.grad = g
         return Update(grads, g_m, g_r)
+
+    def _doubled(self, loss, params):
+        leaves = [r[2] for r in self._records]
+        gs = torch.autograd.grad(loss, params + leaves, allow_unused=True)
+        # the loss is a mean over the doubled batch: each stream's gradient is twice its share
+        g_r = [2 * g if g is not None else torch.zeros_like(p) for p, g in zip(params, gs)]
+        mu = [2 * g if g is not None else torch.zeros_like(leaf)
+              for leaf, g in zip(leaves, gs[len(params):])]
+        fns = {id(r[0]) for r in self._records}
+        if len(fns) == 1 and self._records:
+            # one network pass over every step's inputs stacked
+            fn = self._records[0][0]
+            inputs = [torch.cat(group) for group in zip(*(r[1] for r in self._records))]
+            total = (fn(*inputs) * torch.cat(mu)).sum()
+        else:
+            total = sum((r[0](*r[1]) * m).sum() for r, m in zip(self._records, mu))
+        self._records = []
+        if not torch.is_tensor(total) or not total.requires_grad:
+            return g_r, [torch.zeros_like(p) for p in params]
+        return g_r, _grad(total, params, retain=False)
 
 
 def _grad(loss: torch.Tensor, params: list[torch.Tensor], retain: bool) -> list[torch.Tensor]:
@@ -180,6 +236,7 @@ def unrolled_loss(
         with torch.no_grad():
             for _ in range(warmup):
                 u = model(u, params, conditions)
+    u, frames, params, conditions = (flow.start(t) for t in (u, frames, params, conditions))
     losses = []
     for s in range(1, m + 1):
         if truncate and s > 1 and (s - 1) % truncate == 0:
