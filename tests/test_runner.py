@@ -112,6 +112,19 @@ def test_existing_scheduler_by_flag_and_by_environment(scheduler, tmp_path, monk
     assert [r["pid"] for r in json.loads((tmp_path / "env" / "rows.json").read_text())] == [
         pid, pid]
     assert not list((tmp_path / "env").glob(".probe-*"))
+    # A study the workers cannot import is refused before any cell runs, saying so.
+    (tmp_path / "mods").mkdir()
+    (tmp_path / "mods" / "lonely_cells.py").write_text(
+        "def run_cell(cell, run_dir):\n    return {}\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "mods"))
+    import lonely_cells
+
+    runner.register_study(runner.Study("runner-lonely", ("tiny",), _runner_cells.cells,
+                                       lonely_cells.run_cell, _runner_cells.report))
+    with pytest.raises(OSError, match="cannot import the study module lonely_cells"):
+        runner.run("runner-lonely", tmp_path / "lonely", "tiny", 1, cluster=scheduler,
+                   progress=False)
+    assert not (tmp_path / "lonely" / "ok-0").exists()
 
 
 def test_worker_problems_say_what_to_fix():
