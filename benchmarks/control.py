@@ -1,6 +1,7 @@
-"""Cost of one controller update through each simulator (stabilised-BPTT tasks), float64.
+"""Cost of one controller update through each simulator (stabilised-BPTT tasks).
 
-    python benchmarks/control.py [--repeats 15] [--batch 8] [--tasks cartpole,guidance,quantum]
+    python benchmarks/control.py [--repeats 15] [--batch 8] [--dtype float64|float32]
+                                 [--tasks cartpole,guidance,quantum]
 
 Side by side in one run, round-robin, medians over ``--repeats`` updates, per task (at its
 hardest level: 4 poles, control weight 0.001, target 5; the paper's networks, batch 8):
@@ -95,9 +96,11 @@ class TorchSchrodinger:
         self.half = 0.5j * s.dt
 
     def __call__(self, u, c):
+        cd = torch.complex64 if u.dtype == torch.float32 else torch.complex128
         psi = torch.complex(u[:, 0], u[:, 1])
-        h = self.kin + torch.diag_embed(c[:, :1].to(torch.complex128) * self.x)
-        lhs, rhs = self.eye + self.half * h, self.eye - self.half * h
+        h = self.kin.to(cd) + torch.diag_embed(c[:, :1].to(cd) * self.x.to(cd))
+        eye = self.eye.to(cd)
+        lhs, rhs = eye + self.half * h, eye - self.half * h
         out = torch.linalg.solve(lhs, (rhs @ psi[:, :, None]))[:, :, 0]
         return torch.stack([out.real, out.imag], dim=1)
 
@@ -117,16 +120,16 @@ def torch_loss(task, net, x0, step):
     return task.total(terms)
 
 
-def setup(name, batch):
+def setup(name, batch, dtype=torch.float64):
     task = control.get_task(name, control.TASKS[name].levels[-1])
     torch.manual_seed(0)
-    net = task.net().double()
+    net = task.net().to(dtype)
     for m in net.modules():  # a trained-looking controller, not the zero-initialised one
         if isinstance(m, torch.nn.Linear | torch.nn.Conv1d):
             m.reset_parameters()
             with torch.no_grad():
                 m.weight.mul_(0.3)
-    x0 = torch.from_numpy(task.initial_states(np.random.default_rng(0), batch))
+    x0 = torch.from_numpy(task.initial_states(np.random.default_rng(0), batch)).to(dtype)
     return task, net, x0
 
 
@@ -156,9 +159,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--tasks", default="cartpole,guidance,quantum")
+    ap.add_argument("--dtype", choices=("float64", "float32"), default="float64",
+                    help="of the timed updates (the agreement check always runs in float64)")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    print(f"float64, batch {args.batch}, one thread; ms per update (median of {args.repeats})")
+    dtype = getattr(torch, args.dtype)
+    print(f"{args.dtype}, batch {args.batch}, one thread; ms per update "
+          f"(median of {args.repeats})")
     print(f"{'task':<9} {'steps':>5} {'R':>8} {'C':>8} {'torch':>8} {'C/R':>6} {'torch/R':>8} "
           f"{'agree':>8}")
     for name in args.tasks.split(","):
@@ -167,6 +174,8 @@ def main() -> None:
         err = agreement(task, net, x0, step)
         if not err <= 1e-10:
             raise SystemExit(f"{name}: the torch baseline disagrees with the bridge ({err:.2e})")
+        if dtype != torch.float64:
+            task, net, x0 = setup(name, args.batch, dtype)
         runs = {"R": partial(update_ours, task, net, x0, "R"),
                 "C": partial(update_ours, task, net, x0, "C"),
                 "torch": partial(update_torch, task, net, x0, step)}
