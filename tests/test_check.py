@@ -13,6 +13,7 @@ from adjointsim.check import (
     REF_SAFETY,
     TOLERANCES,
     CheckResult,
+    _extrapolate,
     _ridders,
     _taylor_rate,
     check,
@@ -101,6 +102,12 @@ def test_ridders_estimate_bounds_its_error():
     # A first level far outside the asymptotic range is skipped, not trusted.
     best2, err2 = _ridders([100.0, *d[1:]])
     assert abs(best2 - math.exp(x)) <= REF_SAFETY * err2 < 1e-12
+
+
+def test_two_disagreeing_extrapolations_widen_the_estimate():
+    # Round-off the tableau cannot see shows as disagreement between the two step sequences.
+    value, err = _extrapolate([[2.0, 2.0, 2.0, 2.0], [2.0 + 1e-9] * 4])
+    assert value in (2.0, 2.0 + 1e-9) and err == pytest.approx(1e-9)
 
 
 def test_taylor_rate_sees_a_first_order_remainder():
