@@ -20,9 +20,9 @@ A reference with an error estimate cannot decide below that estimate, so a diffe
 when it is within max(tolerance, 10 × the reference's estimated error), and the row fails as
 undecidable when the estimate itself exceeds a limit (``dot_ref``/``fd_ref``) chosen so that the
 dot-product bound never exceeds 1e-7 in float64: an adjoint error of relative size 1e-6 is
-always caught. All
-perturbations start from a 1 % change of the trajectory (scaled by the rollout's measured
-sensitivity), so a long chaotic rollout is probed where its Taylor expansion holds.
+always caught. All perturbations start from a 1 % change of the trajectory (scaled by the
+rollout's measured sensitivity), so a long chaotic rollout is probed where its Taylor expansion
+holds.
 
 In float32 the adjoint runs in float32 while the references (tangent, Φ) run the float64
 kernels from the same float32 inputs: the check then measures the float32 adjoint's own
