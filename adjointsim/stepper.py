@@ -450,19 +450,17 @@ class Stepper:
         u0: np.ndarray,
         ctrl: np.ndarray,
         p: np.ndarray,
-        n: int | None = None,
+        n: int,
     ) -> None:
         """Zero cost when the rollout stayed finite; otherwise find the first bad step.
 
         ``states`` is what :meth:`_run` returned for the ``n`` steps (for a ping-pong buffer,
-        ``n`` bounds the replay; it defaults to the controls' length or else ``2**24``).
+        ``n`` bounds the replay).
         """
         if _all_finite(states[-1] if keep_all else states):
             return
         offset = 0
         if not keep_all:
-            if n is None:
-                n = ctrl.shape[0] if ctrl.shape[0] else 2**24
             # Replay in chunks that keep every state until one chunk holds the first bad step.
             u, chunk = u0, 256
             while offset < n:

@@ -102,7 +102,7 @@ def _forward(
         states = np.broadcast_to(u, (n + 1, *u.shape)).copy()
     else:
         states = stepper._run(u, n, c, p, keep_all=keep_all or store)
-        stepper._raise_if_nonfinite(states, keep_all or store, u, c, p)
+        stepper._raise_if_nonfinite(states, keep_all or store, u, c, p, n=n)
     if keep_all:
         out = states.copy() if store else states
     elif states.shape[0] == n + 1:
