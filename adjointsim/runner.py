@@ -31,6 +31,7 @@ import os
 import sys
 import uuid
 from collections.abc import Callable
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -128,26 +129,28 @@ def run(
     failures: list[tuple[str, str]] = []
     if todo:
         out.mkdir(parents=True, exist_ok=True)
-        extra = study.prepare(size, out) if study.prepare is not None else {}
-        todo = [{**c, **extra} for c in todo]
-        bar = tqdm(total=len(todo), desc=f"{study_name} cells", unit="cell",
-                   disable=not progress, initial=0)
+        with ExitStack() as stack:
+            # The cluster first: a remote one that is unreachable or unfit fails before the
+            # study's shared inputs are made.
+            client = (None if cluster == "none" else stack.enter_context(
+                _dask_client(study, out, cluster, min(jobs, len(todo)), retries)))
+            extra = study.prepare(size, out) if study.prepare is not None else {}
+            todo = [{**c, **extra} for c in todo]
+            bar = stack.enter_context(tqdm(total=len(todo), desc=f"{study_name} cells",
+                                           unit="cell", disable=not progress))
 
-        def done(cell_id: str, row: dict | None, error: str | None) -> None:
-            if error is None:
-                rows[cell_id] = row
-            else:
-                failures.append((cell_id, error))
-                bar.write(f"{study_name}: cell {cell_id} failed: {error}")
-            bar.update()
+            def done(cell_id: str, row: dict | None, error: str | None) -> None:
+                if error is None:
+                    rows[cell_id] = row
+                else:
+                    failures.append((cell_id, error))
+                    bar.write(f"{study_name}: cell {cell_id} failed: {error}")
+                bar.update()
 
-        try:
-            if cluster == "none":
+            if client is None:
                 _run_here(study, todo, out, retries, done)
             else:
-                _run_on_dask(study, todo, out, cluster, jobs, retries, done)
-        finally:
-            bar.close()
+                _run_on_dask(client, study, todo, out, retries, done)
     finished = [rows[c["id"]] for c in cells if c["id"] in rows]
     write_text(out / "rows.json", dumps(finished))
     if finished and report:
@@ -256,13 +259,14 @@ def _worker_execute(run_cell: Callable[[dict, Path], dict], cell: dict, run_dir:
     return execute(run_cell, cell, run_dir)
 
 
-def _run_on_dask(study: Study, todo: list[dict], out: Path, cluster: str, jobs: int,
-                 retries: int, done) -> None:
+@contextmanager
+def _dask_client(study: Study, out: Path, cluster: str, workers: int, retries: int):
+    """A client of a local cluster of ``workers`` processes started here (closed on exit) or
+    of the scheduler at ``cluster`` (after checking its workers)."""
     import logging
 
     import dask
-    from distributed import Client, LocalCluster, as_completed
-    from distributed.client import FutureCancelledError
+    from distributed import Client, LocalCluster
 
     # A worker that dies running a task counts as a failure of that task: retried as often as
     # an exception is (this holds for the in-process scheduler; a remote one keeps its own
@@ -272,36 +276,37 @@ def _run_on_dask(study: Study, todo: list[dict], out: Path, cluster: str, jobs: 
     with dask.config.set({"distributed.scheduler.allowed-failures": retries,
                           "distributed.nanny.pre-spawn-environ": _ONE_THREAD}):
         if cluster == "local":
-            local = LocalCluster(n_workers=min(jobs, len(todo)), threads_per_worker=1,
-                                 processes=True, dashboard_address=None,
-                                 silence_logs=logging.CRITICAL)
-            client = Client(local)
+            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                              dashboard_address=None, silence_logs=logging.CRITICAL) as local:
+                with Client(local) as client:
+                    yield client
         else:
-            local = None
             client = _connect(cluster)
             try:
                 check_workers(client, out, study)
-            except BaseException:
+                yield client
+            finally:
                 client.close()
-                raise
+
+
+def _run_on_dask(client, study: Study, todo: list[dict], out: Path, retries: int,
+                 done) -> None:
+    from distributed import as_completed
+    from distributed.client import FutureCancelledError
+
+    futures = {}
+    for cell in todo:
+        f = client.submit(_worker_execute, study.run_cell, cell, str(out / cell["id"]),
+                          key=f"{study.name}-{cell['id']}-{uuid.uuid4().hex[:8]}",
+                          retries=retries, pure=False)
+        futures[f] = cell["id"]
+    for f in as_completed(futures):
         try:
-            futures = {}
-            for cell in todo:
-                f = client.submit(_worker_execute, study.run_cell, cell, str(out / cell["id"]),
-                                  key=f"{study.name}-{cell['id']}-{uuid.uuid4().hex[:8]}",
-                                  retries=retries, pure=False)
-                futures[f] = cell["id"]
-            for f in as_completed(futures):
-                try:
-                    done(futures[f], f.result(), None)
-                except FutureCancelledError:
-                    done(futures[f], None, "cancelled (the scheduler or its workers went away)")
-                except Exception as e:
-                    done(futures[f], None, _describe_failure(e, retries))
-        finally:
-            client.close()
-            if local is not None:
-                local.close()
+            done(futures[f], f.result(), None)
+        except FutureCancelledError:
+            done(futures[f], None, "cancelled (the scheduler or its workers went away)")
+        except Exception as e:
+            done(futures[f], None, _describe_failure(e, retries))
 
 
 def _describe_failure(exc: BaseException, retries: int) -> str:

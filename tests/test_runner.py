@@ -64,7 +64,7 @@ def test_local_cluster_retries_reports_failures_and_reruns_nothing(tmp_path, mon
     def no_cluster(*args, **kwargs):
         raise AssertionError("a rerun of a finished study must not start a cluster")
 
-    monkeypatch.setattr(runner, "_run_on_dask", no_cluster)
+    monkeypatch.setattr(runner, "_dask_client", no_cluster)
     assert main(argv) == 0
     assert _calls(out) == calls
     assert len(json.loads((out / "rows.json").read_text())) == 6
