@@ -46,7 +46,8 @@ class SolverPhysics:
 
     The network output f (b, d_f) holds the per-step controls, step-major per sample
     (d_f = n · prod(control_shape)); ``initial(context)`` maps the per-sample context (b, ...)
-    to the initial states (b, C, *grid). The forward pass goes through the torch bridge (so
+    to the initial states (b, C, *grid); ``scale`` multiplies the output (units matter: HIG
+    is not invariant to a rescaling of y). The forward pass goes through the torch bridge (so
     Adam can backpropagate through the adjoint); :meth:`jacobian` is the batched adjoint.
     """
 
@@ -55,10 +56,12 @@ class SolverPhysics:
         stepper: Stepper,
         steps: int,
         initial: Callable[[torch.Tensor], torch.Tensor],
+        scale: float = 1.0,
     ):
         if stepper.control_shape is None:
             raise ValueError(f"{stepper.name} has no control hook: the network cannot drive it")
         self.stepper, self.steps, self.initial = stepper, int(steps), initial
+        self.scale = float(scale)
         self.control_size = int(np.prod(stepper.control_shape))
 
     def _controls(self, f: torch.Tensor) -> torch.Tensor:
@@ -74,7 +77,7 @@ class SolverPhysics:
     def __call__(self, f: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         u0 = self.initial(context).to(f.dtype).contiguous()
         y = bridge.rollout(self.stepper, u0, self.steps, self._controls(f))
-        return y.reshape(f.shape[0], -1)
+        return self.scale * y.reshape(f.shape[0], -1)
 
     def jacobian(self, f: torch.Tensor, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(y, ∂y/∂f) with shapes (b, d_y) and (b, d_y, d_f): one forward rollout of the batch,
@@ -97,7 +100,8 @@ class SolverPhysics:
         )
         jac = g.controls.reshape(self.steps, b, d_y, self.control_size)
         jac = np.ascontiguousarray(jac.transpose(1, 2, 0, 3)).reshape(b, d_y, -1)
-        return torch.from_numpy(traj[-1].reshape(b, d_y)), torch.from_numpy(jac)
+        y = self.scale * traj[-1].reshape(b, d_y)
+        return torch.from_numpy(y), torch.from_numpy(self.scale * jac)
 
 
 class TorchPhysics:

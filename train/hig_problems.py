@@ -8,7 +8,9 @@ Problems (settings from ``shared/papers/hig.md``; deviations are marked):
 * ``quantum``: ``schrodinger1d-cn``, 14 interior points on (0, 2), m = ½ (H = −∂xx + u x),
   Δt = 0.05, 384 steps, from the ground state to a random normalised real superposition of
   the eigenstates 2 and 3; loss 1 − |⟨ψ*|ψ_T⟩|². Network 28 → 20 ×3 (tanh) → 384. Adam batch
-  256, lr 5e-4; HIG batch 16, lr 0.5, τ = 1e-5; GN (not given by the paper) as HIG.
+  256, lr 5e-4; HIG batch 16, lr 0.5, τ = 1e-5; GN (not given by the paper) as HIG. As in the
+  reference code, states enter the network and the loss with unit Euclidean norm,
+  Σ_j |ψ_j|² = 1 (the solver's ψ times √h): HIG's step is not invariant to that scale.
 * ``poisson``: 8×8, zero Dirichlet, the 5-point Laplacian of ``poisson2d``. Smooth fields
   x* = A⁻² n (A = −Δ_h, n white noise, two ``poisson2d`` solves), y = Δ_h x*; the network
   64 → 64 → 128 → 64 → 64 (tanh) maps y to x̂, loss ‖Δ_h x̂ − y‖², fresh samples every step.
@@ -117,10 +119,12 @@ def _quantum(seed: int, n_data: int) -> Problem:
     steps = 384
 
     def mode(k: int) -> np.ndarray:
+        """Box eigenstate k with unit Euclidean norm (the solver's normalisation / √h)."""
         m = np.sin(k * np.pi * s.x / s.length)
-        return m / np.sqrt(s.h * np.sum(m**2))
+        return m / np.linalg.norm(m)
 
-    ground = torch.from_numpy(np.stack([mode(1), np.zeros(s.n)]))
+    root_h = np.sqrt(s.h)
+    ground = torch.from_numpy(np.stack([mode(1), np.zeros(s.n)]) / root_h)
     rng = np.random.default_rng(seed)
 
     def targets(count: int) -> torch.Tensor:
@@ -132,13 +136,13 @@ def _quantum(seed: int, n_data: int) -> Problem:
     def infidelity(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         n = s.n
         yr, yi, tr, ti = y[:, :n], y[:, n:], target[:, :n], target[:, n:]
-        re = s.h * (tr * yr + ti * yi).sum(dim=1)
-        im = s.h * (tr * yi - ti * yr).sum(dim=1)
+        re = (tr * yr + ti * yi).sum(dim=1)
+        im = (tr * yi - ti * yr).sum(dim=1)
         return 1.0 - (re**2 + im**2)
 
     train, test = targets(n_data), targets(n_data)
     empty = torch.zeros(n_data, 0, dtype=DTYPE)
-    physics = SolverPhysics(s, steps, lambda c: ground.expand(c.shape[0], 2, s.n))
+    physics = SolverPhysics(s, steps, lambda c: ground.expand(c.shape[0], 2, s.n), scale=root_h)
     return Problem(
         name="quantum",
         model=lambda: mlp([2 * s.n, 20, 20, 20, steps], torch.nn.Tanh),
