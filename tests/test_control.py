@@ -212,6 +212,19 @@ def test_bad_inputs_name_the_problem():
         control.ControlConfig.load(epochs="ten")
 
 
+def test_toml_config(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text('task = "guidance"\ncontrol_weight = 0.01\nmode = "M"\n')
+    cfg = control.ControlConfig.load(path, seed=3)
+    assert (cfg.task, cfg.level, cfg.mode, cfg.seed) == ("guidance", 0.01, "M", 3)
+    path.write_text('epochs = "many"\n')
+    with pytest.raises(ValueError, match="config key 'epochs' must be int, got 'many'"):
+        control.ControlConfig.load(path)
+    path.write_text("epochs = [\n")
+    with pytest.raises(ValueError, match="is not valid TOML"):
+        control.ControlConfig.load(path)
+
+
 def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     out = tmp_path / "run"
     args = ["control", "cartpole", "--epochs", "1", "--train", "4", "--test", "4", "--batch",

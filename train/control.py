@@ -495,11 +495,17 @@ def add_command(sub, help_text: str) -> None:
     p.add_argument("--config", type=Path, default=None, help="TOML file of ControlConfig keys")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--no-progress", action="store_true")
+    helps = {
+        "mode": "R, M, S, N or C (default C)", "clip": "none, value or norm (at 1; default none)",
+        "poles": "cartpole: 1..4 (default 1)", "target": "quantum: eigenstate 3..5 (default 3)",
+        "control_weight": "guidance: 1, 0.1, 0.01 or 0.001 (default 1)",
+        "out": "run directory (default runs/control-TASK-MODE)",
+    }
     for f in fields(ControlConfig):
         if f.name == "task":
             continue
         p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=str, default=None,
-                       help=f"default {f.default!r}")
+                       help=helps.get(f.name, f"default {f.default!r}"))
     p.set_defaults(func=run_command)
 
 
