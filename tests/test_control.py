@@ -244,6 +244,20 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert "unknown mode 'X'; choose from R, M, S, N, C" in capsys.readouterr().err
 
 
+def test_study_grids():
+    from train.studies import stablebptt
+
+    quick = stablebptt.cells("quick", None)
+    assert len(quick) == 3 * 2 * 4 and len({c["id"] for c in quick}) == len(quick)
+    hardest = stablebptt.cells("hardest", None)
+    assert {(c["task"], c["level"]) for c in hardest} == {
+        ("cartpole", 4), ("guidance", 0.001), ("quantum", 5)}
+    assert {c["mode"] for c in hardest} == {"R", "M", "C"} and len(hardest) == 27
+    full = stablebptt.cells("full", 1)
+    assert len(full) == (4 + 4 + 3) * 4 * 3
+    assert {(c["train"], c["test"], c["batch"]) for c in full} == {(256, 256, 8)}
+
+
 def test_tiny_study_end_to_end(tmp_path):
     from adjointsim import runner
     from train.studies import load_all
