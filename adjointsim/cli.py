@@ -119,6 +119,7 @@ TORCH_COMMANDS = {
     "study": "the grid of setups x modes x seeds, with a table and a plot",
     "hig": "train through a solver with half-inverse gradients, Gauss-Newton or Adam",
     "control": "train a controller through a simulator (cartpole, guidance, quantum; R/M/S/N/C)",
+    "pinn": "physics-informed training with loss balancing (uniform, inverse-Dirichlet, max/avg)",
 }
 
 

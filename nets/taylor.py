@@ -121,7 +121,32 @@ def jets(
     return out
 
 
-def laplacian(model: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(u, Δu) at ``x``, both (N, d_out)."""
-    u, _, second = jets(model, x, 2)
-    return u, second.sum(dim=1)
+def laplacian(
+    model: nn.Module, x: torch.Tensor, directions: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(u, Σ_d u^(2)_d) at ``x``, both (N, d_out): with the default axes, (u, Δu).
+
+    The second-order parts enter every layer linearly, so only their sum over the directions
+    is carried, y₂ = σ'' Σ_d z_{1,d}² + σ' z₂ (the "forward Laplacian"): one (N, width) tensor
+    instead of D of them, next to the D first-order ones."""
+    if x.ndim != 2:
+        raise ValueError(f"x must be (points, coordinates), not of shape {tuple(x.shape)}")
+    if directions is None:
+        directions = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)
+    if directions.ndim != 2 or directions.shape[1] != x.shape[1]:
+        raise ValueError(f"directions must be (D, {x.shape[1]}), not {tuple(directions.shape)}")
+    z0, z1, z2 = x, directions, None
+    for layer in _layers(model):
+        if isinstance(layer, nn.Linear):
+            z0 = layer(z0)
+            z1 = z1 @ layer.weight.T
+            z2 = None if z2 is None else z2 @ layer.weight.T
+            continue
+        d = _DERIVATIVES[type(layer)](z0, 2)
+        q = (z1 * z1).sum(dim=-2)  # (N, w), or (w,) while z1 is shared by every point
+        z2 = d[2] * q if z2 is None else d[2] * q + d[1] * z2
+        z1 = d[1].unsqueeze(-2) * z1
+        z0 = d[0]
+    if z2 is None:  # an affine model
+        z2 = torch.zeros_like(z0)
+    return z0, z2

@@ -99,6 +99,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
     add_command(sub, COMMANDS["control"])
 
+    from .pinn import add_command as add_pinn
+
+    add_pinn(sub, COMMANDS["pinn"])
+
 
 def _data(args: argparse.Namespace) -> int:
     from . import data

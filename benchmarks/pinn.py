@@ -1,0 +1,60 @@
+"""One full-batch epoch of the Poisson PINN (2500 collocation + 400 boundary points, the
+[2, 50×5, 1] tanh network, Adam, ID weighting as configured) with Δu from the forward Taylor
+route (nets/taylor.py) against nested reverse-mode autograd, side by side in one process.
+
+Rounds alternate the two routes; each round times ``--epochs`` epochs; the median epoch time
+per route and the ratio are printed. Run: ``python benchmarks/pinn.py [--rounds 7]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from statistics import median
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import torch  # noqa: E402
+
+from train.pinn import PinnConfig, make_problem, make_weighting  # noqa: E402
+
+
+def epoch_time(route: str, epochs: int, weighting: str) -> float:
+    cfg = PinnConfig(k=4, weighting=weighting, route=route)
+    problem = make_problem(cfg)
+    model = problem.model()
+    params = list(model.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    w = make_weighting(cfg, problem)
+    t0 = time.perf_counter()
+    for epoch in range(epochs):
+        opt.zero_grad(set_to_none=True)
+        w.backward(problem.losses(model, route), params, epoch)
+        opt.step()
+    return (time.perf_counter() - t0) / epochs
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--rounds", type=int, default=7)
+    p.add_argument("--epochs", type=int, default=20, help="epochs per timed round")
+    p.add_argument("--weighting", default="inverse-dirichlet")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    times = {"taylor": [], "autograd": []}
+    for route in times:  # warm-up
+        epoch_time(route, 2, args.weighting)
+    for _ in range(args.rounds):
+        for route in times:
+            times[route].append(epoch_time(route, args.epochs, args.weighting))
+    t_f, t_a = median(times["taylor"]), median(times["autograd"])
+    print(f"Poisson PINN epoch (2500 + 400 points, [2, 50x5, 1] tanh, {args.weighting}), "
+          f"1 thread, median of {args.rounds} rounds x {args.epochs} epochs")
+    print(f"  forward Taylor : {1e3 * t_f:7.2f} ms/epoch  {1 / t_f:7.1f} epochs/s")
+    print(f"  nested autograd: {1e3 * t_a:7.2f} ms/epoch  {1 / t_a:7.1f} epochs/s")
+    print(f"  speed-up       : {t_a / t_f:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,450 @@
+"""Physics-informed training with loss balancing (Maddu et al., MLST 2022): the multi-scale
+Poisson problem, its training loop, history, plots and the ``adjointsim pinn`` command.
+
+Poisson, as in the note: Δu = −2ω² cos(ωx) sin(ωy) on [0, 1]², ω = kπ, k = 1..6, exact
+solution u = cos(ωx) sin(ωy). L_res = mean of the squared residual over 2500 collocation points
+drawn (without replacement) from the 100 × 100 grid; L_bc = the sum of the four edges' MSEs
+against the exact Dirichlet data, 100 uniformly random points per edge. Network [2, 50×5, 1]
+tanh, Xavier-normal weights with gain 5/3 and zero biases, inputs standardised with the
+collocation points' mean and std. Adam, lr 1e-3, full batch, 30,001 epochs with lr × 0.1 at
+10k, 20k and 30k (a shorter run puts the steps at the same fractions). Metric: relative L2
+error on the 100 × 100 grid. The seed draws the points and the initial network.
+
+Loss L = λ_res L_res + λ_bc L_bc with λ from :class:`train.weighting.Weighting` (the residual
+is the reference term, as in the authors' code, unless ``reference = "max"``); ``fixed`` uses
+the analytic ε-optimal λ_res = 1/(1 + ω⁴), λ_bc = 1 − λ_res. Δu comes from the forward Taylor
+route (:mod:`nets.taylor`) or, for comparison, nested autograd (``route = "autograd"``).
+
+A run directory holds ``config.json``, ``checkpoint.pt`` (atomic, every minute and at the end),
+``history.csv`` (every ``log_every`` epochs: each term, each weight, the weighted total, the
+relative L2 error, skipped updates, seconds), ``result.json`` once finished, and the plots
+``field.png`` (exact, prediction, error) and ``history.png`` (terms, weights, error).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import time
+import warnings
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from nets.mlp import MLP
+from nets.taylor import laplacian
+
+from .atomic import atomic_path, write_json, write_text
+from .weighting import Weighting, canonical_rule
+
+PROBLEMS = ("poisson",)
+ROUTES = ("taylor", "autograd")
+K_RANGE = (1, 6)
+#: the authors' reported relative L2 errors (Adam, ±50%: read off their plot), per k
+REPORTED = {
+    "uniform": {1: 1.6e-3, 2: 1.2e-2, 3: 4e-2, 4: 1e-1, 5: 1.8e-1, 6: 2.5e-1},
+    "inverse-dirichlet": {1: 3e-4, 2: 4e-4, 3: 6e-4, 4: 1.8e-3, 5: 4e-3, 6: 7e-3},
+    "max-avg": {1: 1e-3, 2: 1.9e-3, 3: 3.7e-3, 4: 5.5e-3, 5: 6e-3, 6: 7.5e-3},
+    "fixed": {1: 2e-4, 2: 4e-4, 3: 8.5e-4, 4: 2.5e-3, 5: 5e-3, 6: 8e-3},
+}
+#: consecutive non-finite losses after which a run is given up (full batch: the same
+#: parameters give the same loss, so skipping cannot recover)
+MAX_SKIPS = 10
+
+
+@dataclass
+class PinnConfig:
+    problem: str = "poisson"
+    k: int = 1
+    weighting: str = "inverse-dirichlet"
+    #: the ID reference term: "res" (the authors' code) or "max" (the largest spread)
+    reference: str = "res"
+    epochs: int = 30001
+    seed: int = 0
+    lr: float = 1e-3
+    alpha: float = 0.5
+    every: int = 5
+    width: int = 50
+    depth: int = 5
+    collocation: int = 2500
+    edge_points: int = 100
+    route: str = "taylor"
+    log_every: int = 100
+
+    def validate(self) -> None:
+        if self.problem not in PROBLEMS:
+            raise ValueError(f"unknown problem {self.problem!r}; choose from "
+                             f"{', '.join(PROBLEMS)}")
+        self.weighting = canonical_rule(self.weighting)
+        for f in fields(self):
+            v = getattr(self, f.name)
+            want = type(f.default)
+            if not isinstance(v, want) or isinstance(v, bool):
+                if not (want is float and isinstance(v, int) and not isinstance(v, bool)):
+                    raise ValueError(f"config key {f.name!r} must be {want.__name__}, "
+                                     f"got {v!r}")
+        if not K_RANGE[0] <= self.k <= K_RANGE[1]:
+            raise ValueError(f"k must be in {K_RANGE[0]}..{K_RANGE[1]} (ω = kπ), not {self.k}")
+        if self.reference not in ("res", "max"):
+            raise ValueError(f"reference must be 'res' or 'max', not {self.reference!r}")
+        if self.route not in ROUTES:
+            raise ValueError(f"route must be one of {', '.join(ROUTES)}, not {self.route!r}")
+        for name in ("epochs", "width", "depth", "collocation", "edge_points", "every",
+                     "log_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be ≥ 1, not {getattr(self, name)}")
+        if self.collocation > 100 * 100:
+            raise ValueError(f"collocation must be ≤ 10000 (the 100 × 100 grid), "
+                             f"not {self.collocation}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be a positive number, not {self.lr}")
+        if not 0 < self.alpha <= 1:
+            raise ValueError(f"alpha must be in (0, 1], not {self.alpha}")
+
+
+# ----------------------------------------------------------------------------- the problem
+class Standardized(nn.Module):
+    """An MLP of standardised inputs (x − μ)/σ."""
+
+    def __init__(self, mlp: MLP, mean: torch.Tensor, std: torch.Tensor):
+        super().__init__()
+        self.mlp = mlp
+        self.register_buffer("mean", mean)
+        self.register_buffer("std", std)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.mlp((x - self.mean) / self.std)
+
+    def laplacian(self, x: torch.Tensor, route: str = "taylor") -> torch.Tensor:
+        """Δu at ``x`` (N, 1) in the physical coordinates."""
+        if route == "taylor":
+            # d/dx_i = (1/σ_i) d/dx̃_i: the jets run along the scaled axes of x̃
+            dirs = torch.diag(1.0 / self.std)
+            return laplacian(self.mlp, (x - self.mean) / self.std, dirs)[1]
+        x = x.detach().requires_grad_(True)
+        u = self(x)
+        g = torch.autograd.grad(u.sum(), x, create_graph=True)[0]
+        return sum(torch.autograd.grad(g[:, i].sum(), x, create_graph=True)[0][:, i:i + 1]
+                   for i in range(x.shape[1]))
+
+
+class Poisson:
+    """The multi-scale Poisson problem at wavenumber k (see the module doc)."""
+
+    terms = ("res", "bc")
+
+    def __init__(self, cfg: PinnConfig):
+        self.cfg = cfg
+        self.omega = cfg.k * math.pi
+        rng = np.random.default_rng([cfg.seed, cfg.k])
+        g = np.linspace(0.0, 1.0, 100)
+        gx, gy = np.meshgrid(g, g, indexing="ij")
+        self.grid = torch.from_numpy(np.stack([gx.ravel(), gy.ravel()], axis=1)).float()
+        pick = rng.choice(len(self.grid), cfg.collocation, replace=False)
+        self.x_col = self.grid[pick]
+        self.f_col = self.source(self.x_col)
+        edges = []
+        for axis, value in ((0, 0.0), (0, 1.0), (1, 0.0), (1, 1.0)):
+            pts = np.empty((cfg.edge_points, 2))
+            pts[:, axis] = value
+            pts[:, 1 - axis] = rng.uniform(0.0, 1.0, cfg.edge_points)
+            x = torch.from_numpy(pts).float()
+            edges.append((x, self.exact(x)))
+        self.edges = edges
+        self.u_grid = self.exact(self.grid)
+
+    def exact(self, x: torch.Tensor) -> torch.Tensor:
+        return (torch.cos(self.omega * x[:, :1]) * torch.sin(self.omega * x[:, 1:]))
+
+    def source(self, x: torch.Tensor) -> torch.Tensor:
+        return -2.0 * self.omega**2 * self.exact(x)
+
+    def model(self) -> Standardized:
+        torch.manual_seed(self.cfg.seed)
+        mlp = MLP(2, 1, self.cfg.width, self.cfg.depth, "tanh")
+        for m in mlp.modules():
+            if isinstance(m, nn.Linear):
+                nn.init.xavier_normal_(m.weight, gain=5.0 / 3.0)
+                nn.init.zeros_(m.bias)
+        return Standardized(mlp, self.x_col.mean(dim=0), self.x_col.std(dim=0))
+
+    def losses(self, model: Standardized, route: str = "taylor") -> dict[str, torch.Tensor]:
+        res = model.laplacian(self.x_col, route) - self.f_col
+        bc = sum(((model(x) - u) ** 2).mean() for x, u in self.edges)
+        return {"res": (res**2).mean(), "bc": bc}
+
+    def analytic_weights(self) -> dict[str, float]:
+        lam = 1.0 / (1.0 + self.omega**4)
+        return {"res": lam, "bc": 1.0 - lam}
+
+    @torch.no_grad()
+    def rel_l2(self, model: nn.Module) -> float:
+        u = model(self.grid)
+        return float(torch.linalg.norm(u - self.u_grid) / torch.linalg.norm(self.u_grid))
+
+
+def make_problem(cfg: PinnConfig) -> Poisson:
+    cfg.validate()
+    return Poisson(cfg)
+
+
+def make_weighting(cfg: PinnConfig, problem: Poisson) -> Weighting:
+    fixed = problem.analytic_weights() if cfg.weighting == "fixed" else None
+    reference = None if cfg.reference == "max" and cfg.weighting == "inverse-dirichlet" \
+        else "res"
+    return Weighting(problem.terms, cfg.weighting, reference=reference, alpha=cfg.alpha,
+                     every=cfg.every, fixed=fixed)
+
+
+def milestones(epochs: int) -> list[int]:
+    """lr × 0.1 at 10k, 20k, 30k of 30,001 epochs; the same fractions of a shorter run."""
+    return sorted({max(1, round(i * (epochs - 1) / 3)) for i in (1, 2, 3)})
+
+
+# ----------------------------------------------------------------------------- training
+class RunExists(FileExistsError):
+    """The output directory holds a finished run, or an unfinished one without ``--resume``."""
+
+
+def history_fields(terms: tuple[str, ...]) -> list[str]:
+    return (["epoch"] + [f"loss/{t}" for t in terms] + [f"weight/{t}" for t in terms]
+            + ["total", "rel_l2", "lr", "skipped", "seconds"])
+
+
+def _write_history(path: Path, terms: tuple[str, ...], history: list[dict]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=history_fields(terms))
+    w.writeheader()
+    w.writerows(history)
+    write_text(path, buf.getvalue())
+
+
+def read_history(path: str | Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def _load_checkpoint(path: Path) -> dict:
+    try:
+        ckpt = torch.load(path, weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is reported the same way
+        raise ValueError(f"{path} is corrupt or not a checkpoint ({type(e).__name__}: {e}); "
+                         "delete it to start again") from None
+    keys = {"config", "model", "optimizer", "scheduler", "weighting", "state"}
+    if not isinstance(ckpt, dict) or not keys <= set(ckpt):
+        raise ValueError(f"{path} is not a pinn checkpoint (missing keys); delete it to start "
+                         "again")
+    return ckpt
+
+
+def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: bool = True,
+              plot: bool = True) -> dict:
+    """Train ``cfg`` in ``out`` (see the module doc); returns the result (also result.json).
+    A finished run is never overwritten: with ``resume`` its result is returned as it is."""
+    torch.set_num_threads(1)
+    problem = make_problem(cfg)
+    config = asdict(cfg)
+    out = Path(out)
+    result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
+    if result_path.exists():
+        if resume:
+            return json.loads(result_path.read_text())
+        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
+    if ckpt_path.exists() and not resume:
+        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    model = problem.model()
+    params = list(model.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones(cfg.epochs), gamma=0.1)
+    weighting = make_weighting(cfg, problem)
+    state = {"epoch": 0, "history": [], "skipped": 0, "streak": 0, "seconds": 0.0,
+             "diverged": False}
+    if ckpt_path.exists():
+        ckpt = _load_checkpoint(ckpt_path)
+        if ckpt["config"] != config:
+            raise RunExists(f"{out} holds a run of another configuration {ckpt['config']}; "
+                            "choose another --out")
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        sched.load_state_dict(ckpt["scheduler"])
+        weighting.load_state_dict(ckpt["weighting"])
+        state = ckpt["state"]
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "config.json", config)
+
+    def checkpoint() -> None:
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({"config": config, "model": model.state_dict(),
+                        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                        "weighting": weighting.state_dict(), "state": state}, tmp)
+        _write_history(out / "history.csv", problem.terms, state["history"])
+
+    def log(epoch: int, losses: dict[str, float]) -> None:
+        state["history"].append({
+            "epoch": epoch, **{f"loss/{t}": losses[t] for t in problem.terms},
+            **{f"weight/{t}": weighting.weights[t] for t in problem.terms},
+            "total": sum(weighting.weights[t] * losses[t] for t in problem.terms),
+            "rel_l2": problem.rel_l2(model), "lr": opt.param_groups[0]["lr"],
+            "skipped": state["skipped"], "seconds": state["seconds"]})
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.epochs, initial=state["epoch"], unit="epoch", leave=False,
+                   desc=f"{cfg.problem} k={cfg.k} {cfg.weighting} seed {cfg.seed}")
+    last_save = time.monotonic()
+    try:
+        while state["epoch"] < cfg.epochs and not state["diverged"]:
+            epoch = state["epoch"]
+            t0 = time.perf_counter()
+            opt.zero_grad(set_to_none=True)
+            losses = problem.losses(model, cfg.route)
+            values = {t: float(v.detach()) for t, v in losses.items()}
+            if not all(math.isfinite(v) for v in values.values()):
+                state["skipped"] += 1
+                state["streak"] += 1
+                warnings.warn(f"epoch {epoch}: non-finite loss {values}; update skipped",
+                              RuntimeWarning, stacklevel=2)
+                if state["streak"] >= MAX_SKIPS:
+                    state["diverged"] = True
+                state["seconds"] += time.perf_counter() - t0
+                continue
+            state["streak"] = 0
+            if epoch % cfg.log_every == 0:
+                log(epoch, values)  # the weights before this epoch's refresh
+            weighting.backward(losses, params, epoch)
+            opt.step()
+            sched.step()
+            state["seconds"] += time.perf_counter() - t0
+            state["epoch"] += 1
+            if bar is not None:
+                bar.update()
+                if epoch % cfg.log_every == 0:
+                    bar.set_postfix(rel_l2=f"{state['history'][-1]['rel_l2']:.2e}")
+            if time.monotonic() - last_save > 60.0:
+                checkpoint()
+                last_save = time.monotonic()
+    except KeyboardInterrupt:
+        checkpoint()
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    if not state["diverged"]:
+        with torch.enable_grad():
+            final = {t: float(v.detach()) for t, v in problem.losses(model, cfg.route).items()}
+        if all(math.isfinite(v) for v in final.values()):
+            log(state["epoch"], final)
+    checkpoint()
+    rel = problem.rel_l2(model)
+    result = {**config, "rel_l2": rel if math.isfinite(rel) else None,
+              "diverged": state["diverged"], "skipped": state["skipped"],
+              "seconds": state["seconds"], "weights": dict(weighting.weights)}
+    if plot:
+        plot_run(problem, model, state["history"], out, cfg)
+    write_json(result_path, result)
+    return result
+
+
+# ----------------------------------------------------------------------------- plots
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_run(problem: Poisson, model: nn.Module, history: list[dict], out: Path,
+             cfg: PinnConfig) -> None:
+    """``field.png``: exact solution, prediction, |error|; ``history.png``: each term, each
+    weight and the relative L2 error over epochs."""
+    plt = _pyplot()
+    with torch.no_grad():
+        u = model(problem.grid).reshape(100, 100).numpy()
+    exact = problem.u_grid.reshape(100, 100).numpy()
+    title = f"Poisson k={cfg.k}, {cfg.weighting}, seed {cfg.seed}"
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    for ax, field, name in zip(axes, (exact, u, np.abs(u - exact)),
+                               ("exact u", "network u", "|error|")):
+        im = ax.imshow(field.T, origin="lower", extent=(0, 1, 0, 1), cmap="viridis")
+        ax.set(title=name, xlabel="x", ylabel="y")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(out / "field.png") as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    ep = [h["epoch"] for h in history]
+    for t in problem.terms:
+        axes[0].plot(ep, [h[f"loss/{t}"] for h in history], label=f"L_{t}")
+        axes[1].plot(ep, [h[f"weight/{t}"] for h in history], label=f"λ_{t}")
+    axes[2].plot(ep, [h["rel_l2"] for h in history], color="k")
+    for ax, name in zip(axes, ("loss terms", "weights", "relative L2 error")):
+        ax.set(yscale="log", xlabel="epoch", title=name)
+        if name != "relative L2 error":
+            ax.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(out / "history.png") as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- CLI
+def add_command(sub: argparse._SubParsersAction, help_text: str) -> None:
+    """The ``adjointsim pinn`` subcommand (called from ``train.cli.add_commands``)."""
+    p = sub.add_parser("pinn", help=help_text)
+    p.add_argument("problem", help=f"one of {', '.join(PROBLEMS)}")
+    p.add_argument("--out", type=Path, default=None,
+                   help="default runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
+    p.add_argument("--resume", action="store_true", help="continue OUT's unfinished run")
+    p.add_argument("--no-progress", dest="progress", action="store_false")
+    for f in fields(PinnConfig):
+        if f.name == "problem":
+            continue
+        p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=str, default=None,
+                       help=f"default {f.default!r}")
+    p.set_defaults(func=run_command)
+
+
+def config_from_args(args: argparse.Namespace) -> PinnConfig:
+    values = {"problem": args.problem}
+    for f in fields(PinnConfig):
+        v = getattr(args, f.name, None)
+        if f.name == "problem" or v is None:
+            continue
+        kind = type(f.default)
+        try:
+            values[f.name] = kind(v)
+        except ValueError:
+            raise ValueError(f"--{f.name.replace('_', '-')} must be {kind.__name__}, "
+                             f"got {v!r}") from None
+    cfg = PinnConfig(**values)
+    cfg.validate()
+    return cfg
+
+
+def run_command(args: argparse.Namespace) -> int:
+    cfg = config_from_args(args)
+    out = args.out or Path("runs") / f"pinn-{cfg.problem}-k{cfg.k}-{cfg.weighting}-seed{cfg.seed}"
+    result = train_run(cfg, out, resume=args.resume, progress=args.progress)
+    if result["diverged"]:
+        print(f"{cfg.problem} k={cfg.k} {cfg.weighting}: diverged after {MAX_SKIPS} "
+              f"non-finite losses in a row; run in {out}")
+        return 1
+    print(f"{cfg.problem} k={cfg.k} {cfg.weighting} seed {cfg.seed}: relative L2 "
+          f"{result['rel_l2']:.3e} after {cfg.epochs} epochs ({result['seconds']:.0f} s), "
+          f"weights {', '.join(f'{k} {v:.3g}' for k, v in result['weights'].items())}; "
+          f"run in {out}")
+    return 0
