@@ -1,0 +1,159 @@
+"""The Poisson PINN (train/pinn.py): problem, training loop, checkpoints, bad input, CLI and a
+tiny end-to-end study. Tiny networks and point sets: seconds."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from adjointsim.cli import main as cli
+from train import pinn
+from train.pinn import PinnConfig, make_problem, milestones, read_history, train_run
+
+TINY = {"width": 6, "depth": 2, "collocation": 40, "edge_points": 6, "log_every": 2}
+TINY_ARGS = ["--width", "6", "--depth", "2", "--collocation", "40", "--edge-points", "6",
+             "--log-every", "2", "--no-progress"]
+
+
+def _cfg(**kw):
+    return PinnConfig(**{**TINY, "epochs": 12, "k": 2, **kw})
+
+
+def test_problem_matches_the_note():
+    cfg = PinnConfig(k=3)
+    p = make_problem(cfg)
+    assert p.x_col.shape == (2500, 2) and len(p.edges) == 4
+    assert all(x.shape == (100, 2) for x, _ in p.edges)
+    # every collocation point lies on the 100 × 100 grid, none twice
+    assert len({tuple(r) for r in (p.x_col * 99).round().int().tolist()}) == 2500
+    assert sum(m.numel() for m in p.model().parameters()) == 10401
+    w = 3 * math.pi
+    assert p.analytic_weights()["res"] == pytest.approx(1 / (1 + w**4))
+    assert milestones(30001) == [10000, 20000, 30000]
+    # the exact solution solves the equation: Δu = f with u = cos(ωx) sin(ωy)
+    x = p.x_col[:5].double().requires_grad_(True)
+    u = p.exact(x).sum()
+    g = torch.autograd.grad(u, x, create_graph=True)[0]
+    lap = sum(torch.autograd.grad(g[:, i].sum(), x, retain_graph=True)[0][:, i] for i in (0, 1))
+    torch.testing.assert_close(lap, p.source(x)[:, 0], rtol=1e-10, atol=1e-8)
+
+
+def test_taylor_and_autograd_routes_give_the_same_laplacian():
+    p = make_problem(_cfg(width=7, depth=3))
+    model = p.model().double()
+    x = p.x_col.double()
+    torch.testing.assert_close(model.laplacian(x, "taylor"), model.laplacian(x, "autograd"),
+                               rtol=1e-10, atol=1e-10)
+
+
+def test_run_writes_history_plots_and_refuses_to_overwrite(tmp_path):
+    out = tmp_path / "run"
+    result = train_run(_cfg(weighting="id"), out, progress=False)
+    assert math.isfinite(result["rel_l2"]) and not result["diverged"]
+    assert result["weights"]["res"] == 1.0 and result["weights"]["bc"] != 1.0
+    hist = read_history(out / "history.csv")
+    assert [h["epoch"] for h in hist] == [0, 2, 4, 6, 8, 10, 12]
+    assert {"loss/res", "loss/bc", "weight/res", "weight/bc", "rel_l2"} <= set(hist[0])
+    assert hist[-1]["rel_l2"] == pytest.approx(result["rel_l2"])
+    for name in ("field.png", "history.png"):
+        assert (out / name).stat().st_size > 1000
+    with pytest.raises(pinn.RunExists, match="finished run"):
+        train_run(_cfg(weighting="id"), out, progress=False)
+    assert train_run(_cfg(weighting="id"), out, resume=True, progress=False) == result
+
+
+def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
+    straight = train_run(_cfg(weighting="maxavg"), tmp_path / "a", progress=False, plot=False)
+    real, calls = pinn.Poisson.losses, []
+
+    def interrupt(self, model, route="taylor"):
+        calls.append(1)
+        if len(calls) == 7:
+            raise KeyboardInterrupt
+        return real(self, model, route)
+
+    monkeypatch.setattr(pinn.Poisson, "losses", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
+    monkeypatch.setattr(pinn.Poisson, "losses", real)
+    with pytest.raises(pinn.RunExists, match="--resume"):
+        train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
+    with pytest.raises(pinn.RunExists, match="another configuration"):
+        train_run(_cfg(weighting="maxavg", seed=1), tmp_path / "b", resume=True, progress=False)
+    again = train_run(_cfg(weighting="maxavg"), tmp_path / "b", resume=True, progress=False,
+                      plot=False)
+    assert again["rel_l2"] == straight["rel_l2"] and again["weights"] == straight["weights"]
+
+
+def test_non_finite_losses_skip_the_update_with_a_warning(tmp_path, monkeypatch):
+    real, calls = pinn.Poisson.losses, []
+
+    def flaky(self, model, route="taylor"):
+        calls.append(1)
+        terms = real(self, model, route)
+        if len(calls) in (3, 4):
+            terms["bc"] = terms["bc"] * math.nan
+        return terms
+
+    monkeypatch.setattr(pinn.Poisson, "losses", flaky)
+    with pytest.warns(RuntimeWarning, match="non-finite loss"):
+        result = train_run(_cfg(), tmp_path / "r", progress=False, plot=False)
+    assert result["skipped"] == 2 and not result["diverged"] and math.isfinite(result["rel_l2"])
+
+
+def test_lasting_non_finite_losses_end_the_run_as_diverged(tmp_path, monkeypatch, capsys):
+    def broken(self, model, route="taylor"):
+        return {"res": torch.tensor(math.inf), "bc": torch.tensor(1.0)}
+
+    monkeypatch.setattr(pinn.Poisson, "losses", broken)
+    with pytest.warns(RuntimeWarning):
+        code = cli(["pinn", "poisson", *TINY_ARGS, "--epochs", "5", "--out", str(tmp_path)])
+    assert code == 1 and "diverged" in capsys.readouterr().out
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["diverged"] and result["skipped"] == pinn.MAX_SKIPS
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="corrupt or not a checkpoint"):
+        train_run(_cfg(), tmp_path, resume=True, progress=False)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["heat"], "unknown problem 'heat'"),
+    (["poisson", "--k", "7"], "k must be in 1..6"),
+    (["poisson", "--k", "0"], "k must be in 1..6"),
+    (["poisson", "--weighting", "gradnorm"], "unknown weighting 'gradnorm'"),
+    (["poisson", "--epochs", "many"], "--epochs must be int"),
+    (["poisson", "--reference", "bc"], "reference must be 'res' or 'max'"),
+])
+def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
+    assert cli(["pinn", *args, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_cli_runs_and_refuses_a_finished_run(tmp_path, capsys):
+    args = ["pinn", "poisson", "--k", "1", "--weighting", "analytic", "--epochs", "4",
+            *TINY_ARGS, "--out", str(tmp_path)]
+    assert cli(args) == 0
+    assert "relative L2" in capsys.readouterr().out
+    assert json.loads((tmp_path / "config.json").read_text())["weighting"] == "fixed"
+    assert cli(args) == 2
+    assert "finished run" in capsys.readouterr().err
+
+
+def test_tiny_study_end_to_end(tmp_path):
+    import train.studies.pinn as study
+    from adjointsim.runner import run
+
+    rows = run("pinn-poisson", tmp_path, "tiny", None, cluster="none", progress=False)
+    assert {(r["k"], r["weighting"], r["seed"]) for r in rows} == {
+        (k, w, 0) for k in (1, 2) for w in ("uniform", "inverse-dirichlet")}
+    assert all(math.isfinite(r["rel_l2"]) for r in rows)
+    text = (tmp_path / "table.txt").read_text()
+    assert "inverse-dirichlet" in text and "ID at or below uniform" in text
+    assert (tmp_path / "pinn-poisson.png").stat().st_size > 1000
+    cell = study.cells("tiny", None)[0]
+    assert study.run_cell(cell, tmp_path / cell["id"])["rel_l2"] == rows[0]["rel_l2"]
