@@ -1,0 +1,93 @@
+"""adjointsim.fit: known answers, the misfit's gradient against finite differences, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import adjointsim
+from adjointsim.fit import FitError, fit, problem
+
+
+def _trajectory(stepper, u0, n, controls=None):
+    return stepper.rollout(u0, n, controls, keep="all")
+
+
+def test_recovers_ks_coefficients_noise_free():
+    ks = adjointsim.get("ks1d-etdrk2")(n=32, dt=0.1)
+    u0 = ks.random_state(np.random.default_rng(0))
+    traj = _trajectory(ks, u0, 20)
+    r = fit(ks, {k: traj[k] for k in range(1, 21)}, wrt="params", u0=u0,
+            params={"anti_diffusion": 1.2, "hyper_diffusion": 0.8},
+            bounds={"hyper_diffusion": (0.1, None)}, tol=1e-30)
+    for k, v in ks.params.items():
+        assert abs(r.params[k] / v - 1) <= 1e-6, (k, r.params[k])
+    assert r.history[0]["misfit"] > 1e3 * r.misfit
+    assert r.history[-1]["iteration"] == len(r.history) - 1
+
+
+@pytest.mark.parametrize("wrt", ["state", "controls"])
+def test_recovers_initial_state_or_controls(wrt):
+    heat = adjointsim.get("diffusion1d-ftcs")(n=16)
+    rng = np.random.default_rng(1)
+    u0 = heat.random_state(rng)
+    ctrl = heat.random_controls(rng, 6)
+    traj = _trajectory(heat, u0, 6, ctrl)
+    obs = {k: traj[k] for k in range(1, 7)}
+    known = {"u0": u0} if wrt == "controls" else {"controls": ctrl}
+    r = fit(heat, obs, wrt=wrt, tol=1e-30, **known)
+    np.testing.assert_allclose(r.state, u0, atol=1e-8)
+    np.testing.assert_allclose(r.controls, ctrl, atol=1e-8)
+    assert r.wrt == (wrt,)
+    # a checkpointed adjoint gives the same objective and gradient
+    prob = problem(heat, obs, wrt=wrt, **known)
+    z = prob.z0 + rng.standard_normal(prob.z0.shape)
+    f, g = prob.objective(z)
+    fc, gc = problem(heat, obs, wrt=wrt, checkpoint=3, **known).objective(z)
+    assert fc == pytest.approx(f, rel=1e-13)
+    np.testing.assert_allclose(gc, g, rtol=1e-10, atol=1e-14 * np.abs(g).max())
+
+
+@pytest.mark.parametrize("checkpoint", [None, 4])
+def test_objective_gradient_matches_finite_differences(checkpoint):
+    burgers = adjointsim.get("burgers1d-rusanov")(n=16, nu=0.1)
+    rng = np.random.default_rng(2)
+    u0 = burgers.random_state(rng)
+    ctrl = 0.1 * burgers.random_controls(rng, 8)
+    obs = {3: burgers.random_state(rng), 8: burgers.random_state(rng)}
+    prob = problem(burgers, obs, wrt="state,controls,params", u0=u0, controls=ctrl,
+                   params={"nu": 0.08}, tikhonov=0.3, smoothness=0.2, checkpoint=checkpoint)
+    z = prob.z0 + 0.05 * rng.standard_normal(prob.z0.shape)
+    f, g = prob.objective(z)
+    d = rng.standard_normal(z.shape)
+    h = 1e-5
+    fd = (prob.objective(z + h * d)[0] - prob.objective(z - h * d)[0]) / (2 * h)
+    assert abs(fd - g @ d) <= 1e-6 * abs(g @ d)
+    assert prob.last["misfit"] > 0 and prob.last["reg"] > 0
+
+
+def test_fit_rejects_bad_input():
+    heat = adjointsim.get("diffusion1d-ftcs")(n=16)
+    u = heat.random_state(np.random.default_rng(3))
+    with pytest.raises(ValueError, match=r"step 3 has shape \(1, 16\)"):
+        fit(heat, {3: u[0]}, u0=u)
+    with pytest.raises(ValueError, match="step 9 is outside the rollout"):
+        fit(heat, {9: u}, n=5, u0=u)
+    with pytest.raises(ValueError, match="unknown wrt entry 'velocity'"):
+        fit(heat, {2: u}, wrt="state,velocity")
+    with pytest.raises(ValueError, match="non-finite"):
+        fit(heat, {2: np.full_like(u, np.nan)})
+    with pytest.raises(ValueError, match="not a gradient-based"):
+        fit(heat, {2: u}, method="Nelder-Mead")
+    with pytest.raises(ValueError, match="not fitted"):
+        fit(heat, {2: u}, bounds={"nu": (0, 1)})
+    with pytest.raises(ValueError, match="u0 is needed"):
+        fit(heat, {2: u}, wrt="nu")
+    with pytest.raises(ValueError, match="no control hook"):
+        fit(adjointsim.get("poisson2d")(), {1: np.zeros((1, 1, 16, 16))}, wrt="controls")
+
+def test_fit_reports_a_non_finite_start():
+    burgers = adjointsim.get("burgers1d-rusanov")(n=16, nu=0.1)
+    u0 = 50.0 * burgers.random_state(np.random.default_rng(4))
+    with pytest.raises(FitError, match="non-finite at the starting guess"):
+        fit(burgers, {40: np.zeros_like(u0)}, wrt="nu", u0=u0)
