@@ -23,6 +23,11 @@ oscillators b·d_y = 128·4 = 512 vs b·d_f = 128·96 = 12288 (24× fewer); quan
 64 vs 64 per sample (a tie; its physics, the 5-point Laplacian, is a plain torch function and
 its Jacobian comes from ``torch.func.jacrev``, :class:`TorchPhysics`). Every problem here has
 d_y ≤ d_f, so reverse mode is the one implemented.
+
+Cost (``python benchmarks/hig.py``, oscillators, batch 128, J 512 × 2956, float64, one thread,
+shared machine): one update 1.80 s = network 3.0% + physics 5.5% + SVD 88.8% + apply 0.0%;
+J alone in 0.19 s, 296x faster than ``torch.func.jacrev`` through the same RK4 in plain torch.
+The SVD of the wide J is taken as Jᵀ = QR followed by the SVD of the small R.
 """
 
 from __future__ import annotations
