@@ -47,22 +47,34 @@ def test_jets_match_nested_autograd(width, depth, activation, d_in, d_out, order
             torch.testing.assert_close(g[:, k], ref, rtol=0, atol=1e-11 * scale)
 
 
-def test_parameter_gradient_of_a_laplacian_loss_matches_nested_autograd():
-    torch.manual_seed(1)
-    model = MLP(2, 1, 6, 3, "tanh").double()
-    x = torch.rand(10, 2, dtype=torch.float64, requires_grad=True)
-    _, lap = laplacian(model, x)
-    params = list(model.parameters())  # the last bias drops out of Δu: its gradient is None
-    g_fast = torch.autograd.grad((lap**2).mean(), params, allow_unused=True)
-    u = model(x)
-    grad = torch.autograd.grad(u.sum(), x, create_graph=True)[0]
-    lap_ref = sum(torch.autograd.grad(grad[:, i].sum(), x, create_graph=True)[0][:, i]
-                  for i in range(2))
-    torch.testing.assert_close(lap[:, 0], lap_ref, rtol=1e-12, atol=1e-12)
-    g_ref = torch.autograd.grad((lap_ref**2).mean(), params, allow_unused=True)
-    assert g_fast[-1] is None and g_ref[-1] is None
-    for a, b in zip(g_fast[:-1], g_ref[:-1]):
-        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+@settings(max_examples=20, deadline=None)
+@given(width=st.integers(1, 9), depth=st.integers(1, 4),
+       activation=st.sampled_from(["tanh", "sin"]), d_in=st.integers(1, 3),
+       d_out=st.integers(1, 2), seed=st.integers(0, 2**16))
+def test_fused_laplacian_and_its_parameter_gradient_match_nested_autograd(
+    width, depth, activation, d_in, d_out, seed
+):
+    """The hand-written reverse pass of the forward Laplacian (x without grad) against nested
+    reverse-mode autograd, values and the parameter gradient of a loss of u and Δu."""
+    torch.manual_seed(seed)
+    model = MLP(d_in, d_out, width, depth, activation).double()
+    x = torch.randn(7, d_in, dtype=torch.float64)
+    u, lap = laplacian(model, x)
+    assert lap.grad_fn is not None and "ForwardLaplacian" in type(lap.grad_fn).__name__
+    params = list(model.parameters())  # the last bias drops out of Δu
+    g_fast = torch.autograd.grad((lap**2).mean() + (u**3).mean(), params)
+    xr = x.clone().requires_grad_(True)
+    ur = model(xr)
+    lap_ref = torch.zeros_like(ur)
+    for j in range(d_out):
+        g = torch.autograd.grad(ur[:, j].sum(), xr, create_graph=True)[0]
+        for i in range(d_in):
+            lap_ref[:, j] += torch.autograd.grad(g[:, i].sum(), xr, create_graph=True)[0][:, i]
+    torch.testing.assert_close(u, ur, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(lap, lap_ref, rtol=1e-10, atol=1e-10)
+    g_ref = torch.autograd.grad((lap_ref**2).mean() + (ur**3).mean(), params)
+    for a, b in zip(g_fast, g_ref):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10 * (1 + float(b.abs().max())))
 
 
 def test_bad_input_is_named():
