@@ -471,6 +471,10 @@ def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
         ax.plot([], [], color="C3", label="drivers")
         ax.plot([], [], color="C0", label="evaders")
         ax.plot(0, 0, "k+", ms=10)
+        # the scene of the start (drivers r ≤ 4) and the evaders: far-flung drivers leave it
+        r = max(float(np.abs(xs[0, :2]).max()), float(np.abs(xs[:, :2, nd:]).max())) + 0.5
+        ax.set_xlim(-r, r)
+        ax.set_ylim(-r, r)
         ax.set_aspect("equal")
         ax.legend(fontsize=8)
     else:
