@@ -95,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--out", default=None, help="default runs/stability[-SIZE]")
     st.add_argument("--json", default=None, help="also write the rows here")
     st.set_defaults(func=_stability)
+    from .fit_cli import add_arguments as fit_arguments
+
+    fit_arguments(sub.add_parser("fit", help="fit initial state, controls and coefficients to "
+                                 "observations (HDF5) with the adjoints; --demo, --study params"))
     return parser
 
 

@@ -279,9 +279,11 @@ def problem(
         try:
             pred = rollout_at_observations(u, c, p)
         except (NonFiniteStateError, ValueError) as e:
-            if "z" in last:  # a line-search trial beyond the stable range: make it back off
+            if "z" in last:
+                # A line-search trial beyond the stable range. Infinity would end scipy's line
+                # search; a large finite value with no slope makes it back off instead.
                 last.pop("trajectory", None)
-                return math.inf, np.zeros_like(z)
+                return 1e3 * (1.0 + last["start"]), np.zeros_like(z)
             if isinstance(e, NonFiniteStateError):
                 raise FitError(f"the misfit is non-finite at the starting guess: {e}") from None
             raise FitError(f"the starting guess is not admissible: {e}") from None
@@ -313,6 +315,7 @@ def problem(
                 gx = gx + smoothness * gs
             parts.append(gx.ravel())
         grad = np.concatenate(parts)
+        last.setdefault("start", misfit + reg)
         last.update(z=z.copy(), misfit=misfit, reg=reg, grad_norm=float(np.linalg.norm(grad)))
         return misfit + reg, grad
 
@@ -334,7 +337,7 @@ def fit(
     *,
     maxiter: int = 500,
     method: str = "L-BFGS-B",
-    tol: float | None = None,
+    tol: float | None = 1e-12,
     options: Mapping[str, Any] | None = None,
     callback: Callable[[dict[str, float]], None] | None = None,
     **kwargs: Any,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -91,3 +93,35 @@ def test_fit_reports_a_non_finite_start():
     u0 = 50.0 * burgers.random_state(np.random.default_rng(4))
     with pytest.raises(FitError, match="non-finite at the starting guess"):
         fit(burgers, {40: np.zeros_like(u0)}, wrt="nu", u0=u0)
+
+
+def test_fit_command(tmp_path, capsys):
+    from adjointsim.cli import main
+    from adjointsim.fit_cli import demo_problem, write_observations
+
+    out = tmp_path / "ks"
+    assert main(["fit", "--demo", "ks-params", "--out", str(out), "--quiet"]) == 0
+    for name in ("history.csv", "result.json", "fitted.h5", "fit.png", "history.png"):
+        assert (out / name).is_file(), name
+    result = json.loads((out / "result.json").read_text())
+    assert max(result["param_rel_error"].values()) <= 1e-6
+    rows = (out / "history.csv").read_text().splitlines()
+    assert rows[0].startswith("iteration,misfit") and len(rows) == result["iterations"] + 2
+    capsys.readouterr()
+    assert main(["fit", "--demo", "ks-params", "--out", str(out), "--quiet"]) == 2
+    assert "holds a finished fit" in capsys.readouterr().err
+    # a file of one's own: the Burgers reconstruction from its file, a few iterations
+    obs = tmp_path / "obs.h5"
+    write_observations(obs, demo_problem("burgers"))
+    assert main(["fit", "burgers1d-rusanov", "--observations", str(obs), "--maxiter", "5",
+                 "--out", str(tmp_path / "b"), "--quiet", "--no-plots"]) == 0
+    assert json.loads((tmp_path / "b" / "result.json").read_text())["iterations"] == 5
+    for argv, message in [
+        (["ks1d-etdrk4", "--observations", str(obs)], "holds observations of 'burgers1d"),
+        (["--observations", str(obs), "--wrt", "state,alpha"], "unknown wrt entry 'alpha'"),
+        (["--observations", str(tmp_path / "none.h5")], "does not exist"),
+        (["--observations", str(obs), "--bounds", "nu=1"], "NAME=LO:HI"),
+    ]:
+        assert main(["fit", *argv, "--out", str(tmp_path / "x"), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
