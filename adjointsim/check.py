@@ -310,13 +310,15 @@ def _ridders(d: list[float]) -> tuple[float, float]:
 
 def _taylor_rate(remainders: list[float], floors: list[float]) -> float | None:
     """Median order of the Taylor remainder over the last (smallest-ε) three halvings whose
-    remainders both stand above their floors; None when no halving does."""
+    remainders both stand above their floors; None when fewer than two halvings do (a single
+    one may lie before the range where the remainder is quadratic, and a gradient error
+    large enough to matter keeps the remainder above the floor at every ε)."""
     rates = [
         math.log2(remainders[i] / remainders[i + 1])
         for i in range(len(remainders) - 1)
         if remainders[i] > floors[i] and remainders[i + 1] > floors[i + 1]
     ]
-    return float(np.median(rates[-3:])) if rates else None
+    return float(np.median(rates[-3:])) if len(rates) >= 2 else None
 
 
 def check(
