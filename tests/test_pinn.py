@@ -157,3 +157,35 @@ def test_tiny_study_end_to_end(tmp_path):
     assert (tmp_path / "pinn-poisson.png").stat().st_size > 1000
     cell = study.cells("tiny", None)[0]
     assert study.run_cell(cell, tmp_path / cell["id"])["rel_l2"] == rows[0]["rel_l2"]
+
+
+def test_sobolev_targets_are_the_derivatives_of_f():
+    p = make_problem(PinnConfig(problem="sobolev", collocation=16))
+    assert p.cfg.width == 64 and sum(m.numel() for m in p.model().parameters()) == 16897
+    a, a2, lx, ly, phi, phi2 = (torch.as_tensor(v, dtype=torch.float64)
+                               for v in (p.a, p.a2, p.l, p.l2, p.phi, p.phi2))
+    x = (torch.rand(6, 2, dtype=torch.float64) * 2 * math.pi).requires_grad_(True)
+
+    def f(x):
+        return (a * a2 * torch.cos(lx * x[:, :1] + phi) * torch.sin(ly * x[:, 1:] + phi2)).sum(1)
+
+    torch.testing.assert_close(p.target(0, x.detach())[:, 0], f(x).detach())
+    cur = [f(x), f(x)]  # carried along x and along y
+    for n in range(1, 5):
+        cur = [torch.autograd.grad(c.sum(), x, create_graph=True)[0][:, i] for i, c in
+               enumerate(cur)]
+        torch.testing.assert_close(p.target(n, x.detach())[:, 0], (cur[0] + cur[1]).detach(),
+                                   rtol=1e-10, atol=1e-8)
+
+
+def test_sobolev_run_balances_five_terms(tmp_path):
+    cfg = PinnConfig(problem="sobolev", weighting="id", epochs=6, width=6, depth=2,
+                     collocation=30, log_every=3)
+    result = train_run(cfg, tmp_path, progress=False, plot=False)
+    assert set(result["weights"]) == {"f", "d1", "d2", "d3", "d4"}
+    assert result["weights"]["d4"] == 1.0 and result["weights"]["f"] != 1.0
+    assert "weight/d3" in read_history(tmp_path / "history.csv")[0]
+    with pytest.raises(ValueError, match="no analytic weights"):
+        make_problem(PinnConfig(problem="sobolev", weighting="analytic"))
+    with pytest.raises(ValueError, match="route 'taylor' only"):
+        make_problem(PinnConfig(problem="sobolev", route="autograd"))

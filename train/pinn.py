@@ -1,5 +1,6 @@
 """Physics-informed training with loss balancing (Maddu et al., MLST 2022): the multi-scale
-Poisson problem, its training loop, history, plots and the ``adjointsim pinn`` command.
+Poisson problem and Sobolev training (:class:`Sobolev`), the training loop, history, plots and
+the ``adjointsim pinn`` command.
 
 Poisson, as in the note: Δu = −2ω² cos(ωx) sin(ωy) on [0, 1]², ω = kπ, k = 1..6, exact
 solution u = cos(ωx) sin(ωy). L_res = mean of the squared residual over 2500 collocation points
@@ -38,12 +39,14 @@ import torch
 from torch import nn
 
 from nets.mlp import MLP
-from nets.taylor import laplacian
+from nets.taylor import jets, laplacian
 
 from .atomic import atomic_path, write_json, write_text
 from .weighting import Weighting, canonical_rule
 
-PROBLEMS = ("poisson",)
+PROBLEMS = ("poisson", "sobolev")
+#: each problem's network: activation and the default width (``width = 0``)
+NETWORKS = {"poisson": ("tanh", 50), "sobolev": ("sin", 64)}
 ROUTES = ("taylor", "autograd")
 K_RANGE = (1, 6)
 #: the authors' reported relative L2 errors (Adam, ±50%: read off their plot), per k
@@ -63,14 +66,16 @@ class PinnConfig:
     problem: str = "poisson"
     k: int = 1
     weighting: str = "inverse-dirichlet"
-    #: the ID reference term: "res" (the authors' code) or "max" (the largest spread)
+    #: the ID reference term: "res", the problem's (Poisson: the residual, as in the authors'
+    #: code; Sobolev: the highest derivative), or "max" (the largest spread)
     reference: str = "res"
     epochs: int = 30001
     seed: int = 0
     lr: float = 1e-3
     alpha: float = 0.5
     every: int = 5
-    width: int = 50
+    #: 0: the problem's (Poisson 50, Sobolev 64)
+    width: int = 0
     depth: int = 5
     collocation: int = 2500
     edge_points: int = 100
@@ -89,16 +94,24 @@ class PinnConfig:
                 if not (want is float and isinstance(v, int) and not isinstance(v, bool)):
                     raise ValueError(f"config key {f.name!r} must be {want.__name__}, "
                                      f"got {v!r}")
+        if self.width == 0:
+            self.width = NETWORKS[self.problem][1]
+        if self.problem == "sobolev" and self.route != "taylor":
+            raise ValueError("the sobolev problem takes route 'taylor' only (fourth derivatives)")
+        if self.problem == "sobolev" and self.weighting == "fixed":
+            raise ValueError("the sobolev problem has no analytic weights; choose uniform, "
+                             "inverse-dirichlet or max-avg")
         if not K_RANGE[0] <= self.k <= K_RANGE[1]:
             raise ValueError(f"k must be in {K_RANGE[0]}..{K_RANGE[1]} (ω = kπ), not {self.k}")
         if self.reference not in ("res", "max"):
             raise ValueError(f"reference must be 'res' or 'max', not {self.reference!r}")
         if self.route not in ROUTES:
             raise ValueError(f"route must be one of {', '.join(ROUTES)}, not {self.route!r}")
-        for name in ("epochs", "width", "depth", "collocation", "edge_points", "every",
-                     "log_every"):
+        for name in ("epochs", "depth", "collocation", "edge_points", "every", "log_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be ≥ 1, not {getattr(self, name)}")
+        if self.width < 0:
+            raise ValueError(f"width must be ≥ 1 (or 0: the problem's), not {self.width}")
         if self.collocation > 100 * 100:
             raise ValueError(f"collocation must be ≤ 10000 (the 100 × 100 grid), "
                              f"not {self.collocation}")
@@ -133,11 +146,17 @@ class Standardized(nn.Module):
         return sum(torch.autograd.grad(g[:, i].sum(), x, create_graph=True)[0][:, i:i + 1]
                    for i in range(x.shape[1]))
 
+    def jets(self, x: torch.Tensor, order: int) -> list[torch.Tensor]:
+        """:func:`nets.taylor.jets` along the physical coordinate axes."""
+        return jets(self.mlp, (x - self.mean) / self.std, order, torch.diag(1.0 / self.std))
+
 
 class Poisson:
     """The multi-scale Poisson problem at wavenumber k (see the module doc)."""
 
     terms = ("res", "bc")
+    reference = "res"
+    extent = (0.0, 1.0)
 
     def __init__(self, cfg: PinnConfig):
         self.cfg = cfg
@@ -165,6 +184,10 @@ class Poisson:
     def source(self, x: torch.Tensor) -> torch.Tensor:
         return -2.0 * self.omega**2 * self.exact(x)
 
+    @property
+    def title(self) -> str:
+        return f"Poisson k={self.cfg.k}"
+
     def model(self) -> Standardized:
         torch.manual_seed(self.cfg.seed)
         mlp = MLP(2, 1, self.cfg.width, self.cfg.depth, "tanh")
@@ -189,15 +212,73 @@ class Poisson:
         return float(torch.linalg.norm(u - self.u_grid) / torch.linalg.norm(self.u_grid))
 
 
-def make_problem(cfg: PinnConfig) -> Poisson:
+class Sobolev:
+    """Sobolev training (the note's problem 2): fit f(x, y) = Σ_{j=1}^{20} A_j cos(l_j x + φ_j)
+    · A'_j sin(l'_j y + φ'_j) (A, A' ~ U(−5, 5), l, l' ∈ {1..4}, φ, φ' ~ U(0, 2π), drawn from the
+    seed) on (0, 2π]² together with its derivatives: five objectives, the MSEs of f,
+    ∂x f + ∂y f, Δf, ∂xxx f + ∂yyy f and ∂xxxx f + ∂yyyy f at ``collocation`` uniformly random
+    points; each is the sum over the axes of one order of :func:`nets.taylor.jets`. Network
+    [2, 64×5, 1] with sin activation (PyTorch's default init), inputs standardised; the ID
+    reference is the highest derivative (the authors' code). Metric: relative L2 of f on the
+    100 × 100 grid."""
+
+    terms = ("f", "d1", "d2", "d3", "d4")
+    reference = "d4"
+    extent = (0.0, 2.0 * math.pi)
+    title = "Sobolev training"
+
+    def __init__(self, cfg: PinnConfig):
+        self.cfg = cfg
+        rng = np.random.default_rng([cfg.seed, 20])
+        n = 20
+        self.a, self.a2 = rng.uniform(-5.0, 5.0, n), rng.uniform(-5.0, 5.0, n)
+        self.l, self.l2 = rng.integers(1, 5, n), rng.integers(1, 5, n)
+        self.phi, self.phi2 = rng.uniform(0.0, 2 * math.pi, n), rng.uniform(0.0, 2 * math.pi, n)
+        g = np.linspace(2 * math.pi / 100, 2 * math.pi, 100)
+        gx, gy = np.meshgrid(g, g, indexing="ij")
+        self.grid = torch.from_numpy(np.stack([gx.ravel(), gy.ravel()], axis=1)).float()
+        self.x_col = torch.from_numpy(rng.uniform(0.0, 2 * math.pi, (cfg.collocation, 2))).float()
+        self.targets = [self.target(order, self.x_col) for order in range(5)]
+        self.u_grid = self.target(0, self.grid)
+
+    def target(self, order: int, x: torch.Tensor) -> torch.Tensor:
+        """f for order 0, else ∂xⁿ f + ∂yⁿ f (dⁿ/dsⁿ cos(ls + φ) = lⁿ cos(ls + φ + nπ/2))."""
+        xs, ys = x[:, :1].double().numpy(), x[:, 1:].double().numpy()
+        shift = order * math.pi / 2
+        cx, sy = np.cos(self.l * xs + self.phi), np.sin(self.l2 * ys + self.phi2)
+        if order == 0:
+            out = (self.a * self.a2 * cx * sy).sum(axis=1)
+        else:
+            dx = self.l**order * np.cos(self.l * xs + self.phi + shift) * sy
+            dy = cx * self.l2**order * np.sin(self.l2 * ys + self.phi2 + shift)
+            out = (self.a * self.a2 * (dx + dy)).sum(axis=1)
+        return torch.from_numpy(out[:, None]).to(x.dtype)
+
+    def model(self) -> Standardized:
+        torch.manual_seed(self.cfg.seed)
+        mlp = MLP(2, 1, self.cfg.width, self.cfg.depth, "sin")
+        return Standardized(mlp, self.x_col.mean(dim=0), self.x_col.std(dim=0))
+
+    def losses(self, model: Standardized, route: str = "taylor") -> dict[str, torch.Tensor]:
+        j = model.jets(self.x_col, 4)
+        outs = [j[0]] + [jn.sum(dim=1) for jn in j[1:]]
+        return {t: ((o - y) ** 2).mean() for t, o, y in zip(self.terms, outs, self.targets)}
+
+    @torch.no_grad()
+    def rel_l2(self, model: nn.Module) -> float:
+        u = model(self.grid)
+        return float(torch.linalg.norm(u - self.u_grid) / torch.linalg.norm(self.u_grid))
+
+
+def make_problem(cfg: PinnConfig) -> Poisson | Sobolev:
     cfg.validate()
-    return Poisson(cfg)
+    return Poisson(cfg) if cfg.problem == "poisson" else Sobolev(cfg)
 
 
-def make_weighting(cfg: PinnConfig, problem: Poisson) -> Weighting:
+def make_weighting(cfg: PinnConfig, problem: Poisson | Sobolev) -> Weighting:
     fixed = problem.analytic_weights() if cfg.weighting == "fixed" else None
     reference = None if cfg.reference == "max" and cfg.weighting == "inverse-dirichlet" \
-        else "res"
+        else problem.reference
     return Weighting(problem.terms, cfg.weighting, reference=reference, alpha=cfg.alpha,
                      every=cfg.every, fixed=fixed)
 
@@ -299,7 +380,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
         from tqdm.auto import tqdm
 
         bar = tqdm(total=cfg.epochs, initial=state["epoch"], unit="epoch", leave=False,
-                   desc=f"{cfg.problem} k={cfg.k} {cfg.weighting} seed {cfg.seed}")
+                   desc=f"{problem.title} {cfg.weighting} seed {cfg.seed}")
     last_save = time.monotonic()
     try:
         while state["epoch"] < cfg.epochs and not state["diverged"]:
@@ -364,7 +445,7 @@ def _pyplot():
     return plt
 
 
-def plot_run(problem: Poisson, model: nn.Module, history: list[dict], out: Path,
+def plot_run(problem: Poisson | Sobolev, model: nn.Module, history: list[dict], out: Path,
              cfg: PinnConfig) -> None:
     """``field.png``: exact solution, prediction, |error|; ``history.png``: each term, each
     weight and the relative L2 error over epochs."""
@@ -372,11 +453,11 @@ def plot_run(problem: Poisson, model: nn.Module, history: list[dict], out: Path,
     with torch.no_grad():
         u = model(problem.grid).reshape(100, 100).numpy()
     exact = problem.u_grid.reshape(100, 100).numpy()
-    title = f"Poisson k={cfg.k}, {cfg.weighting}, seed {cfg.seed}"
+    title = f"{problem.title}, {cfg.weighting}, seed {cfg.seed}"
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     for ax, field, name in zip(axes, (exact, u, np.abs(u - exact)),
                                ("exact u", "network u", "|error|")):
-        im = ax.imshow(field.T, origin="lower", extent=(0, 1, 0, 1), cmap="viridis")
+        im = ax.imshow(field.T, origin="lower", extent=problem.extent * 2, cmap="viridis")
         ax.set(title=name, xlabel="x", ylabel="y")
         fig.colorbar(im, ax=ax, shrink=0.8)
     fig.suptitle(title)
@@ -438,13 +519,14 @@ def config_from_args(args: argparse.Namespace) -> PinnConfig:
 
 def run_command(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
-    out = args.out or Path("runs") / f"pinn-{cfg.problem}-k{cfg.k}-{cfg.weighting}-seed{cfg.seed}"
+    name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
+    out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
     result = train_run(cfg, out, resume=args.resume, progress=args.progress)
     if result["diverged"]:
-        print(f"{cfg.problem} k={cfg.k} {cfg.weighting}: diverged after {MAX_SKIPS} "
-              f"non-finite losses in a row; run in {out}")
+        print(f"{name} {cfg.weighting}: diverged after {MAX_SKIPS} non-finite losses in a row; "
+              f"run in {out}")
         return 1
-    print(f"{cfg.problem} k={cfg.k} {cfg.weighting} seed {cfg.seed}: relative L2 "
+    print(f"{name} {cfg.weighting} seed {cfg.seed}: relative L2 "
           f"{result['rel_l2']:.3e} after {cfg.epochs} epochs ({result['seconds']:.0f} s), "
           f"weights {', '.join(f'{k} {v:.3g}' for k, v in result['weights'].items())}; "
           f"run in {out}")
