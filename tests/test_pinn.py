@@ -56,6 +56,10 @@ def test_run_writes_history_plots_and_refuses_to_overwrite(tmp_path):
     assert [h["epoch"] for h in hist] == [0, 2, 4, 6, 8, 10, 12]
     assert {"loss/res", "loss/bc", "weight/res", "weight/bc", "rel_l2"} <= set(hist[0])
     assert hist[-1]["rel_l2"] == pytest.approx(result["rel_l2"])
+    refreshes = read_history(out / "weights.csv")  # ID refreshes every 5 epochs, from 0
+    assert [r["step"] for r in refreshes] == [0, 0, 5, 10]
+    assert refreshes[-1]["bc"] == pytest.approx(result["weights"]["bc"])
+    assert refreshes[-1]["spread/res"] > 0
     for name in ("field.png", "history.png"):
         assert (out / name).stat().st_size > 1000
     with pytest.raises(pinn.RunExists, match="finished run"):
@@ -189,3 +193,14 @@ def test_sobolev_run_balances_five_terms(tmp_path):
         make_problem(PinnConfig(problem="sobolev", weighting="analytic"))
     with pytest.raises(ValueError, match="route 'taylor' only"):
         make_problem(PinnConfig(problem="sobolev", route="autograd"))
+
+
+@pytest.mark.slow
+def test_quick_study_ranks_inverse_dirichlet_below_uniform(tmp_path):
+    import train.studies.pinn  # noqa: F401
+    from adjointsim.runner import run
+
+    rows = run("pinn-poisson", tmp_path, "quick", None, cluster="none", progress=False)
+    err = {(r["k"], r["weighting"]): r["rel_l2"] for r in rows}
+    for k in (2, 4, 6):
+        assert err[(k, "inverse-dirichlet")] < err[(k, "uniform")]

@@ -18,7 +18,8 @@ route (:mod:`nets.taylor`) or, for comparison, nested autograd (``route = "autog
 
 A run directory holds ``config.json``, ``checkpoint.pt`` (atomic, every minute and at the end),
 ``history.csv`` (every ``log_every`` epochs: each term, each weight, the weighted total, the
-relative L2 error, skipped updates, seconds), ``result.json`` once finished, and the plots
+relative L2 error, skipped updates, seconds), ``weights.csv`` (every weight refresh: each λ and
+each term's gradient spread), ``result.json`` once finished, and the plots
 ``field.png`` (exact, prediction, error) and ``history.png`` (terms, weights, error).
 """
 
@@ -307,9 +308,20 @@ def _write_history(path: Path, terms: tuple[str, ...], history: list[dict]) -> N
     write_text(path, buf.getvalue())
 
 
+def _write_weights(path: Path, terms: tuple[str, ...], history: list[dict]) -> None:
+    """Every weight refresh: the step, each λ and each term's gradient spread (ID, max/avg)."""
+    names = ["step", *terms, *(f"spread/{t}" for t in terms)]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=names, restval="")
+    w.writeheader()
+    w.writerows(history)
+    write_text(path, buf.getvalue())
+
+
 def read_history(path: str | Path) -> list[dict]:
     with open(path, newline="") as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        return [{k: float(v) if v != "" else math.nan for k, v in row.items()}
+                for row in csv.DictReader(f)]
 
 
 def _load_checkpoint(path: Path) -> dict:
@@ -366,6 +378,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
                         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                         "weighting": weighting.state_dict(), "state": state}, tmp)
         _write_history(out / "history.csv", problem.terms, state["history"])
+        _write_weights(out / "weights.csv", problem.terms, weighting.history)
 
     def log(epoch: int, losses: dict[str, float]) -> None:
         state["history"].append({
