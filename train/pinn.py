@@ -534,7 +534,13 @@ def run_command(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
     out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
-    result = train_run(cfg, out, resume=args.resume, progress=args.progress)
+    try:
+        result = train_run(cfg, out, resume=args.resume, progress=args.progress)
+    except KeyboardInterrupt:
+        from adjointsim.cli import Interrupted
+
+        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
+            from None
     if result["diverged"]:
         print(f"{name} {cfg.weighting}: diverged after {MAX_SKIPS} non-finite losses in a row; "
               f"run in {out}")
