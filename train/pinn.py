@@ -381,6 +381,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
         _write_weights(out / "weights.csv", problem.terms, weighting.history)
 
     def log(epoch: int, losses: dict[str, float]) -> None:
+        if state["history"] and state["history"][-1]["epoch"] == epoch:
+            state["history"].pop()  # interrupted right after logging: log it again
         state["history"].append({
             "epoch": epoch, **{f"loss/{t}": losses[t] for t in problem.terms},
             **{f"weight/{t}": weighting.weights[t] for t in problem.terms},
