@@ -393,6 +393,8 @@ def command(args: argparse.Namespace) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("scene", nargs="?", default=None,
                    help="registered solver name (default: the file's 'scene' attribute)")
     p.add_argument("--observations", default=None, help="HDF5 file: /steps, /states, "

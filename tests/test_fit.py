@@ -28,8 +28,9 @@ def test_recovers_ks_coefficients_noise_free():
     assert r.history[-1]["iteration"] == len(r.history) - 1
 
 
-@pytest.mark.parametrize("wrt", ["state", "controls"])
-def test_recovers_initial_state_or_controls(wrt):
+@pytest.mark.parametrize(("wrt", "method"), [("state", "L-BFGS-B"), ("controls", "L-BFGS-B"),
+                                            ("state", "BFGS")])
+def test_recovers_initial_state_or_controls(wrt, method):
     heat = adjointsim.get("diffusion1d-ftcs")(n=16)
     rng = np.random.default_rng(1)
     u0 = heat.random_state(rng)
@@ -37,7 +38,7 @@ def test_recovers_initial_state_or_controls(wrt):
     traj = _trajectory(heat, u0, 6, ctrl)
     obs = {k: traj[k] for k in range(1, 7)}
     known = {"u0": u0} if wrt == "controls" else {"controls": ctrl}
-    r = fit(heat, obs, wrt=wrt, tol=1e-30, **known)
+    r = fit(heat, obs, wrt=wrt, tol=1e-30, method=method, **known)
     np.testing.assert_allclose(r.state, u0, atol=1e-8)
     np.testing.assert_allclose(r.controls, ctrl, atol=1e-8)
     assert r.wrt == (wrt,)
