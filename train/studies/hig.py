@@ -144,6 +144,7 @@ def plot(rows: list[dict], out: Path, path: Path) -> None:
     fig, axes = plt.subplots(1, len(problems), figsize=(4.2 * len(problems), 3.4), squeeze=False)
     colors = {"adam": "tab:blue", "gn": "tab:orange", "hig": "tab:green"}
     for ax, problem in zip(axes[0], problems):
+        start = 0.0  # a diverging run must not squash the others: clip at 10x the start
         for r in rows:
             if r["problem"] != problem:
                 continue
@@ -152,11 +153,14 @@ def plot(rows: list[dict], out: Path, path: Path) -> None:
                 continue
             hist = [h for h in read_history(path_csv)
                     if h["wall_s"] > 0 and math.isfinite(h["test_loss"])]
+            start = max([start] + [h["test_loss"] for h in hist[:1]])
             ax.plot([h["wall_s"] for h in hist], [h["test_loss"] for h in hist],
                     color=colors[r["optimizer"]], alpha=0.8, lw=1,
                     label=r["optimizer"].upper() if r["seed"] == 0 else None)
         ax.set(xscale="log", yscale="log", xlabel="wall-clock of the updates (s)",
                ylabel="test loss", title=problem)
+        if start > 0:
+            ax.set_ylim(top=10 * start)
         ax.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
