@@ -116,15 +116,16 @@ def _pair_adjoint(u, ubar, i, j, k, cohesive, fx, fy):
     (r·f̄) φ / k, the cotangent of the strength k."""
     rx = u[0, i] - u[0, j]
     ry = u[1, i] - u[1, j]
-    phi, dphi = _pair(rx, ry, k, cohesive)
+    # The unit-strength force, so that k = 0 (a switched-off force) still has a cotangent.
+    phi1, dphi1 = _pair(rx, ry, 1.0, cohesive)
     rf = rx * fx + ry * fy
-    gx = phi * fx + dphi * rf * rx
-    gy = phi * fy + dphi * rf * ry
+    gx = k * (phi1 * fx + dphi1 * rf * rx)
+    gy = k * (phi1 * fy + dphi1 * rf * ry)
     ubar[0, i] += gx
     ubar[1, i] += gy
     ubar[0, j] -= gx
     ubar[1, j] -= gy
-    return rf * phi / k
+    return rf * phi1
 
 
 @njit(cache=True)
