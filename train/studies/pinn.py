@@ -70,7 +70,8 @@ def _fmt(values: list[float]) -> str:
     text = f"{median(finite):.2e}"
     if len(finite) > 1:
         text += f" [{min(finite):.1e}, {max(finite):.1e}]"
-    return text
+    return text + f" n={len(values)}" + (f" ({len(values) - len(finite)} div.)"
+                                         if len(finite) < len(values) else "")
 
 
 def table(rows: list[dict]) -> str:
@@ -79,7 +80,6 @@ def table(rows: list[dict]) -> str:
     ks = sorted({r["k"] for r in rows})
     ws = [w for w in WEIGHTINGS if any(r["weighting"] == w for r in rows)]
     epochs = sorted({r["epochs"] for r in rows})
-    seeds = len({r["seed"] for r in rows})
     head = ["k"] + ws
     body = []
     for k in ks:
@@ -89,9 +89,9 @@ def table(rows: list[dict]) -> str:
             line.append(f"{_fmt(errs)} ({REPORTED[w][k]:.1e})" if errs else "-")
         body.append(line)
     widths = [max(len(x[i]) for x in [head, *body]) for i in range(len(head))]
-    lines = [f"Poisson PINN, relative L2 on the 100 x 100 grid: median over {seeds} seed(s) "
-             f"[min, max] after {', '.join(map(str, epochs))} epochs (authors, 30,001 epochs, "
-             "in parentheses)"]
+    lines = [f"Poisson PINN, relative L2 on the 100 x 100 grid: median [min, max] over n seeds "
+             f"after {', '.join(map(str, epochs))} epochs (authors, 30,001 epochs, mean of 5 "
+             "seeds, in parentheses)"]
     lines += ["  ".join(c.ljust(wd) for c, wd in zip(x, widths)) for x in [head, *body]]
     lines += [v for k in ks if (v := _verdict(rows, k))]
     return "\n".join(lines)
@@ -131,7 +131,7 @@ def plot(rows: list[dict], path: Path) -> None:
                if any(r["k"] == k for r in mine)]
         ax.plot(*zip(*med), color=c, label=w)
         ax.plot(ks, [REPORTED[w][k] for k in ks], color=c, ls="--", lw=0.8)
-    ax.set(yscale="log", xlabel="k (ω = kπ)", ylabel="relative L2 error",
+    ax.set(yscale="log", xticks=ks, xlabel="k (ω = kπ)", ylabel="relative L2 error",
            title="Poisson PINN (dashed: authors, 30k epochs)")
     ax.legend(fontsize=7)
     fig.tight_layout()
