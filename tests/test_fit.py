@@ -135,6 +135,7 @@ def test_burgers_pinn_residual_and_training():
 
     x = np.linspace(-1, 1, 16, endpoint=False) + 1 / 16
     cfg = BurgersPinnConfig(collocation=50, boundary_points=10, dtype="float64", epochs=12,
+                            weighting="inverse-dirichlet",
                             log_every=4, width=8, depth=3)
     prob = BurgersPinn(x, -np.sin(np.pi * x), cfg)
     net = prob.model()
