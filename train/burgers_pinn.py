@@ -216,8 +216,13 @@ def compare(out: Path, pinn_seconds: float, dp_iterations: tuple[int, ...] = (30
         u0 = "–" if math.isnan(r["u0_mse"]) else f"{r['u0_mse']:.3g}"
         lines.append(f"| {r['method']} | {r['misfit']:.3g} | {u0} | {r['seconds']:.3g} |")
     text = "\n".join(lines)
+    about = (f"PBDL's Burgers reconstruction (observations at t = 0.5 only): "
+             f"`python -m train.burgers_pinn --out docs --pinn-seconds {pinn_seconds:g}`. "
+             "CPU seconds of one thread (DP without numba's compilation); the PINN rows are its "
+             "last logged state (every 50 epochs) within DP's run time and at its budget. "
+             "Plots: fit-burgers.png.\n\n")
     plot(out / "fit-burgers.png", main, net, prob, history)
-    write_text(out / "fit-burgers.md", text + "\n")
+    write_text(out / "fit-burgers.md", about + text + "\n")
     write_json(out / "fit-burgers.json", {"rows": rows, "pinn_config": asdict(cfg),
                                           "pinn_history": history,
                                           "dp_history": main["result"].history})
