@@ -97,6 +97,17 @@ def _alternating(layers: list[nn.Module]) -> bool:
             and not any(isinstance(m, nn.Linear) for m in layers[1::2]))
 
 
+def _directions(x: torch.Tensor, directions: torch.Tensor | None) -> torch.Tensor:
+    """Check the points (N, d_in) and return the directions (D, d_in), default the axes."""
+    if x.ndim != 2:
+        raise ValueError(f"x must be (points, coordinates), not of shape {tuple(x.shape)}")
+    if directions is None:
+        return torch.eye(x.shape[1], dtype=x.dtype, device=x.device)
+    if directions.ndim != 2 or directions.shape[1] != x.shape[1]:
+        raise ValueError(f"directions must be (D, {x.shape[1]}), not {tuple(directions.shape)}")
+    return directions
+
+
 def jets(
     model: nn.Module, x: torch.Tensor, order: int = 2, directions: torch.Tensor | None = None
 ) -> list[torch.Tensor]:
@@ -105,12 +116,7 @@ def jets(
     the coordinate axes, D = d_in)."""
     if not 0 <= order <= MAX_ORDER:
         raise ValueError(f"order must be in 0..{MAX_ORDER}, not {order}")
-    if x.ndim != 2:
-        raise ValueError(f"x must be (points, coordinates), not of shape {tuple(x.shape)}")
-    if directions is None:
-        directions = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)
-    if directions.ndim != 2 or directions.shape[1] != x.shape[1]:
-        raise ValueError(f"directions must be (D, {x.shape[1]}), not {tuple(directions.shape)}")
+    directions = _directions(x, directions)
     layers = _layers(model)
     z: list = [x] + ([directions] if order >= 1 else [])  # z_1 shared by every point at first
     for layer in layers:
@@ -211,12 +217,7 @@ def laplacian(
     The second-order parts enter every layer linearly, so only their sum over the directions
     is carried, y₂ = σ'' Σ_d z_{1,d}² + σ' z₂ (the "forward Laplacian"): one (N, width) tensor
     instead of D of them, next to the D first-order ones."""
-    if x.ndim != 2:
-        raise ValueError(f"x must be (points, coordinates), not of shape {tuple(x.shape)}")
-    if directions is None:
-        directions = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)
-    if directions.ndim != 2 or directions.shape[1] != x.shape[1]:
-        raise ValueError(f"directions must be (D, {x.shape[1]}), not {tuple(directions.shape)}")
+    directions = _directions(x, directions)
     layers = _layers(model)
     if not (x.requires_grad or directions.requires_grad) and _alternating(layers):
         wb = [t for m in layers[0::2] for t in (m.weight, m.bias)]
