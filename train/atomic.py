@@ -65,3 +65,20 @@ def json_text(obj: Any, indent: int | None = 2) -> str:
 
 def write_json(path: str | Path, obj: Any) -> None:
     write_text(path, json_text(obj) + "\n")
+
+
+class RunExists(FileExistsError):
+    """The output directory holds a finished run, or an unfinished one without ``--resume``."""
+
+
+def finished_result(out: Path, resume: bool) -> dict | None:
+    """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
+    when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``."""
+    result_path = out / "result.json"
+    if result_path.exists():
+        if resume:
+            return json.loads(result_path.read_text())
+        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
+    if (out / "checkpoint.pt").exists() and not resume:
+        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    return None

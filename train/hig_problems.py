@@ -52,7 +52,7 @@ from adjointsim.solvers.poisson import Poisson2D
 from adjointsim.solvers.schrodinger import SchrodingerCN
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
-from .atomic import atomic_path, write_text
+from .atomic import RunExists, atomic_path, finished_result, write_json, write_text
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
@@ -267,10 +267,6 @@ class RunConfig:
             raise ValueError(f"max_updates must be ≥ 1, not {self.max_updates}")
 
 
-class RunExists(FileExistsError):
-    """The output directory holds a finished run, or an unfinished one without ``--resume``."""
-
-
 HISTORY_FIELDS = ("update", "wall_s", "train_loss", "test_loss")
 
 
@@ -300,12 +296,9 @@ def train_run(
     cfg.validate()
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    if result_path.exists():
-        if resume:
-            return json.loads(result_path.read_text())
-        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
-    if ckpt_path.exists() and not resume:
-        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    finished = finished_result(out, resume)
+    if finished is not None:
+        return finished
     out.mkdir(parents=True, exist_ok=True)
     config = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
     torch.manual_seed(cfg.seed)
@@ -375,7 +368,7 @@ def train_run(
     if plot:
         plot_history({cfg.optimizer: state["history"]}, out / "loss.png",
                      f"{cfg.problem}, seed {cfg.seed}")
-    write_text(result_path, json.dumps(result, indent=2))
+    write_json(result_path, result)
     return result
 
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import csv
 import io
-import json
 import math
 import time
 import warnings
@@ -42,7 +41,7 @@ from torch import nn
 from nets.mlp import MLP
 from nets.taylor import jets, laplacian
 
-from .atomic import atomic_path, write_json, write_text
+from .atomic import RunExists, atomic_path, finished_result, write_json, write_text
 from .weighting import Weighting, canonical_rule
 
 PROBLEMS = ("poisson", "sobolev")
@@ -291,10 +290,6 @@ def milestones(epochs: int) -> list[int]:
 
 
 # ----------------------------------------------------------------------------- training
-class RunExists(FileExistsError):
-    """The output directory holds a finished run, or an unfinished one without ``--resume``."""
-
-
 def history_fields(terms: tuple[str, ...]) -> list[str]:
     return (["epoch"] + [f"loss/{t}" for t in terms] + [f"weight/{t}" for t in terms]
             + ["total", "rel_l2", "lr", "skipped", "seconds"])
@@ -346,12 +341,9 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     config = asdict(cfg)
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    if result_path.exists():
-        if resume:
-            return json.loads(result_path.read_text())
-        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
-    if ckpt_path.exists() and not resume:
-        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    finished = finished_result(out, resume)
+    if finished is not None:
+        return finished
     model = problem.model()
     params = list(model.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr)
