@@ -121,9 +121,9 @@ def _stability(args: argparse.Namespace) -> int:
 #: commands that need torch; they live in the ``train`` package and load only when used
 TORCH_COMMANDS = {
     "data": "generate reference trajectories (HDF5)",
-    "train": "train a neural stepper (ONE/NOG/WIG, prediction/correction)",
+    "train": "train a neural stepper (ONE/NOG/WIG or R/M/S/N/C, prediction/correction)",
     "eval": "evaluate a trained run: errors, correlation time, stability, plots",
-    "study": "the grid of setups x modes x seeds, with a table and a plot",
+    "study": "a grid of runs on Dask (ks, kolmogorov, stablebptt, hig, pinn-poisson, stability)",
     "hig": "train through a solver with half-inverse gradients, Gauss-Newton or Adam",
     "control": "train a controller through a simulator (cartpole, guidance, quantum; R/M/S/N/C)",
     "pinn": "physics-informed training with loss balancing (uniform, inverse-Dirichlet, max/avg)",
