@@ -102,6 +102,8 @@ def check_observations(
     states of shape (batch, C, *grid), finite."""
     if not isinstance(observations, Mapping) or not observations:
         raise ValueError("observations must be a non-empty mapping {step: state}")
+    if batch == 0:
+        raise ValueError("the observations (or u0) have an empty batch (B = 0): nothing to fit")
     obs: dict[int, np.ndarray] = {}
     for key, value in observations.items():
         if isinstance(key, bool) or not isinstance(key, int | np.integer):

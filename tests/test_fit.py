@@ -88,6 +88,8 @@ def test_fit_rejects_bad_input():
         fit(heat, {2: u}, wrt="nu")
     with pytest.raises(ValueError, match="no control hook"):
         fit(adjointsim.get("poisson2d")(), {1: np.zeros((1, 1, 16, 16))}, wrt="controls")
+    with pytest.raises(ValueError, match=r"empty batch \(B = 0\)"):
+        fit(heat, {2: u[:0]})
 
 def test_fit_reports_a_non_finite_start():
     burgers = adjointsim.get("burgers1d-rusanov")(n=16, nu=0.1)
