@@ -149,11 +149,12 @@ def _smooth_grad(a: np.ndarray, axes: Sequence[int]) -> tuple[float, np.ndarray]
 class FitProblem:
     """The objective of a fit in the optimiser's variables z (see :func:`problem`).
 
-    ``z0``: the starting point; ``objective(z)`` returns (J, ∇J) (J = ∞ with a zero gradient
-    for a trial point whose rollout is not finite or whose parameters break the scene's limits,
-    once the start has been evaluated); ``unpack(z)`` gives (state, controls, params);
-    ``evaluate(z)`` the misfit, regularisation and gradient norm of the last call; ``bounds``
-    the scipy bounds; ``predict(z)`` the states at the observed steps.
+    ``z0``: the starting point; ``objective(z)`` returns (J, ∇J) (J = 1e3 (1 + J(z0)) with a
+    zero gradient for a trial point whose rollout is not finite or whose parameters break the
+    scene's limits, once the start has been evaluated); ``unpack(z)`` gives (state, controls,
+    params); ``last`` holds the misfit, regularisation and gradient norm of the last admissible
+    call and the evaluation count; ``bounds`` the scipy bounds; ``predict(z)`` the states at the
+    observed steps.
     """
 
     z0: np.ndarray
