@@ -95,6 +95,27 @@ def test_no_grad_runs_no_adjoint_and_stores_nothing():
     assert bridge.ADJOINT_CALLS["count"] == before
 
 
+def test_no_grad_keeps_no_trajectory_even_for_inputs_that_require_grad(monkeypatch):
+    """ctx.needs_input_grad is True under torch.no_grad() too: the forward must not trust it."""
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u0, _, _ = _inputs(stepper, 5)
+    params = torch.tensor(stepper.param_values, dtype=u0.dtype, requires_grad=True)
+    saved = []
+    forward = bridge._forward
+
+    def spy(*args, **kwargs):
+        out, kept = forward(*args, **kwargs)
+        saved.append(kept)
+        return out, kept
+
+    monkeypatch.setattr(bridge, "_forward", spy)
+    with torch.no_grad():
+        bridge.rollout(stepper, u0, 5, params=params)
+        bridge.step(stepper, u0, params=params)
+        bridge.rollout_grouped([(stepper, slice(None))], u0, 5)
+    assert saved == [None, None, None]
+
+
 def test_float32_in_float32_out():
     stepper = adjointsim.get("diffusion1d-ftcs").default()
     u0, ctrl, params = _inputs(stepper, 4, dtype=torch.float32)

@@ -183,6 +183,14 @@ def _once_differentiable(names: list[str], grads: tuple, sources: tuple) -> tupl
     return tuple(None if g is None else next(wrapped) for g in grads)
 
 
+def _no_tape(*tensors: torch.Tensor | None) -> tuple:
+    """The inputs, detached under ``torch.no_grad()``: a Function's forward sees its inputs'
+    ``requires_grad`` in ``ctx.needs_input_grad`` even then, and would store the trajectory."""
+    if torch.is_grad_enabled():
+        return tensors
+    return tuple(None if t is None else t.detach() for t in tensors)
+
+
 class _Config(NamedTuple):
     """The non-tensor arguments of one rollout node, passed as one (fewer arguments for torch's
     per-call argument handling)."""
@@ -304,7 +312,7 @@ def rollout_grouped(
     It is one autograd node whatever the number of groups: a batch mixing six scenes pays
     torch's per-node cost once, not six times, and needs no gather or scatter in torch.
     """
-    return _GroupedRollout.apply(groups, _check_steps(n), u0)
+    return _GroupedRollout.apply(groups, _check_steps(n), *_no_tape(u0))
 
 
 def rollout(
@@ -326,7 +334,7 @@ def rollout(
     if keep not in ("last", "all"):
         raise ValueError(f"keep must be 'last' or 'all', not {keep!r}")
     cfg = _Config(stepper, _check_steps(n), keep == "all", checkpoint, False)
-    return _Rollout.apply(cfg, u0, controls, params)
+    return _Rollout.apply(cfg, *_no_tape(u0, controls, params))
 
 
 def step(
@@ -336,4 +344,4 @@ def step(
     params: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Differentiable single step; ``control`` has shape (B, *control_shape)."""
-    return _Rollout.apply(_Config(stepper, 1, False, None, True), u, control, params)
+    return _Rollout.apply(_Config(stepper, 1, False, None, True), *_no_tape(u, control, params))
