@@ -167,6 +167,12 @@ def read_observations(path: str | Path, scene_name: str | None) -> dict[str, Any
                          f"states for {len(steps)} steps")
     if len(set(steps.tolist())) != len(steps):
         raise ValueError(f"{path}: /steps names a step twice")
+    for key in ("states", "u0", "controls", "truth/u0", "truth/controls"):
+        if out[key] is not None:
+            if out[key].dtype.kind not in "iuf":
+                raise ValueError(f"{path}: /{key} has dtype {out[key].dtype}; expected real "
+                                 "numbers")
+            out[key] = out[key].astype(np.float64)
     return out
 
 

@@ -119,7 +119,20 @@ def test_fit_command(tmp_path, capsys):
     assert main(["fit", "burgers1d-rusanov", "--observations", str(obs), "--maxiter", "5",
                  "--out", str(tmp_path / "b"), "--quiet", "--no-plots"]) == 0
     assert json.loads((tmp_path / "b" / "result.json").read_text())["iterations"] == 5
+    import h5py
+
+    with h5py.File(obs, "a") as f:  # an integer u0 is a real starting guess
+        f["u0"] = np.zeros(f["states"].shape[1:], dtype=np.int64)
+    assert main(["fit", "burgers1d-rusanov", "--observations", str(obs), "--maxiter", "1",
+                 "--out", str(tmp_path / "int"), "--quiet", "--no-plots"]) == 0
+    complex_obs = tmp_path / "complex.h5"
+    write_observations(complex_obs, demo_problem("burgers"))
+    with h5py.File(complex_obs, "a") as f:
+        states = f["states"][()]
+        del f["states"]
+        f["states"] = states.astype(np.complex128)
     for argv, message in [
+        (["--observations", str(complex_obs)], "/states has dtype complex128"),
         (["ks1d-etdrk4", "--observations", str(obs)], "holds observations of 'burgers1d"),
         (["--observations", str(obs), "--wrt", "state,alpha"], "unknown wrt entry 'alpha'"),
         (["--observations", str(tmp_path / "none.h5")], "does not exist"),
