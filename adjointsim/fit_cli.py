@@ -322,7 +322,8 @@ def run_fit(obs_file: Path, scene_name: str | None, out: Path, args: argparse.Na
             bar.set_postfix(misfit=f"{row['misfit']:.3g}", grad=f"{row['grad_norm']:.2g}")
 
     try:
-        result = fit(scene, obs, n=args.steps or data["n"], wrt=wrt, u0=data["u0"],
+        n = data["n"] if args.steps is None else args.steps  # --steps 0 is a length too
+        result = fit(scene, obs, n=n, wrt=wrt, u0=data["u0"],
                      controls=data["controls"], params=params, bounds=_bounds(args.bounds),
                      method=args.method, tikhonov=args.tikhonov, smoothness=args.smoothness,
                      checkpoint=args.checkpoint, maxiter=args.maxiter, tol=args.tol,

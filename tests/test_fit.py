@@ -133,6 +133,7 @@ def test_fit_command(tmp_path, capsys):
         f["states"] = states.astype(np.complex128)
     for argv, message in [
         (["--observations", str(complex_obs)], "/states has dtype complex128"),
+        (["--observations", str(obs), "--steps", "0"], "step 16 is outside the rollout"),
         (["ks1d-etdrk4", "--observations", str(obs)], "holds observations of 'burgers1d"),
         (["--observations", str(obs), "--wrt", "state,alpha"], "unknown wrt entry 'alpha'"),
         (["--observations", str(tmp_path / "none.h5")], "does not exist"),
