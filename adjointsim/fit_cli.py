@@ -167,6 +167,11 @@ def read_observations(path: str | Path, scene_name: str | None) -> dict[str, Any
                          f"states for {len(steps)} steps")
     if len(set(steps.tolist())) != len(steps):
         raise ValueError(f"{path}: /steps names a step twice")
+    for key in ("params", "truth_params"):
+        for name, value in out[key].items():
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"{path}: attribute {key!r}: {name} must be a number, "
+                                 f"not {value!r}")
     for key in ("states", "u0", "controls", "truth/u0", "truth/controls"):
         if out[key] is not None:
             if out[key].dtype.kind not in "iuf":

@@ -131,9 +131,14 @@ def test_fit_command(tmp_path, capsys):
         states = f["states"][()]
         del f["states"]
         f["states"] = states.astype(np.complex128)
+    text_param = tmp_path / "text-param.h5"
+    write_observations(text_param, demo_problem("burgers"))
+    with h5py.File(text_param, "a") as f:
+        f.attrs["params"] = json.dumps({"nu": "abc"})
     for argv, message in [
         (["--observations", str(complex_obs)], "/states has dtype complex128"),
         (["--observations", str(obs), "--steps", "0"], "step 16 is outside the rollout"),
+        (["--observations", str(text_param)], "'params': nu must be a number, not 'abc'"),
         (["ks1d-etdrk4", "--observations", str(obs)], "holds observations of 'burgers1d"),
         (["--observations", str(obs), "--wrt", "state,alpha"], "unknown wrt entry 'alpha'"),
         (["--observations", str(tmp_path / "none.h5")], "does not exist"),
