@@ -238,6 +238,11 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     # more epochs with --resume continue the same run
     assert cli([*args[:3], "2", *args[4:], "--resume"]) == 0
     assert len(control.load_history(out / "history.csv")) == 2
+    # fewer epochs than the run holds: refused, and the finished run's files stay as they were
+    before = (out / "result.json").read_text()
+    assert cli([*args[:3], "1", *args[4:], "--resume"]) == 2
+    assert "holds 2 epochs" in capsys.readouterr().err
+    assert (out / "result.json").read_text() == before
     assert cli(["control", "guidance", "--poles", "2"]) == 2
     assert "--poles applies to cartpole, not guidance" in capsys.readouterr().err
     assert cli(["control", "cartpole", "--mode", "X", "--out", str(tmp_path / "x")]) == 2

@@ -309,6 +309,9 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
         ckpt = _load(ckpt_path)
         if ckpt["config"] != asdict(cfg) | {"epochs": ckpt["config"]["epochs"]}:
             raise ValueError(f"{out} holds a run of another configuration; use a new --out")
+        if ckpt["state"]["epoch"] > cfg.epochs:
+            raise ValueError(f"{out} holds {ckpt['state']['epoch']} epochs; pass --epochs "
+                             f"{ckpt['state']['epoch']} or more, or choose another --out")
         if ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs:
             if not resume:
                 raise ValueError(f"{out} holds a finished run; choose another --out "
