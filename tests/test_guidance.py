@@ -78,3 +78,7 @@ def test_bad_scenes():
         Guidance().rollout(np.zeros((1, 4, 6)), 1, np.zeros((1, 1, 4)))
     with pytest.raises(ValueError, match="non-finite"):
         Guidance().rollout(np.full((1, 4, 6), np.nan), 1)
+    # a per-call override names the parameter and its value in plain numbers
+    with pytest.raises(ValueError, match=r"parameters must be ≥ 0, got repulsion = -1\.0$"):
+        Guidance().rollout(Guidance().random_state(np.random.default_rng(0)), 1, None,
+                           {"repulsion": -1.0})

@@ -254,9 +254,8 @@ class Guidance(Stepper):
 
     def check_params(self, p: np.ndarray) -> None:
         if p.min() < 0:
-            raise ValueError(
-                f"{self.name}: parameters {dict(zip(self.param_names, p))} must be ≥ 0"
-            )
+            bad = ", ".join(f"{k} = {v!r}" for k, v in zip(self.param_names, p.tolist()) if v < 0)
+            raise ValueError(f"{self.name}: parameters must be ≥ 0, got {bad}")
 
     @classmethod
     def benchmark_scene(cls, n: int) -> Stepper:
