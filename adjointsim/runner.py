@@ -179,6 +179,8 @@ def finished_row(cell: dict, run_dir: Path) -> dict | None:
         return None
     try:
         row = json.loads(path.read_text())
+        if not isinstance(row, dict):
+            raise ValueError(f"a JSON {type(row).__name__}, not an object")
     except ValueError as e:
         raise ValueError(f"{path} is damaged ({e}); delete it to run the cell again") from None
     differ = sorted(k for k, v in cell.items() if _jsonable(v) != row.get(k))

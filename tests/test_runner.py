@@ -144,6 +144,9 @@ def test_a_row_of_another_cell_is_refused(tmp_path):
     assert runner.finished_row({"id": "ok-0", "seed": 0}, tmp_path / "ok-0")["seed"] == 0
     with pytest.raises(ValueError, match=r"another configuration \(differs in \['seed'\]\)"):
         runner.finished_row({"id": "ok-0", "seed": 1}, tmp_path / "ok-0")
+    (tmp_path / "ok-0" / runner.ROW_FILE).write_text("[]")  # JSON, but not a row
+    with pytest.raises(ValueError, match="is damaged"):
+        runner.finished_row({"id": "ok-0", "seed": 0}, tmp_path / "ok-0")
     with pytest.raises(ValueError, match="choose from"):
         runner.run("no-such-study", tmp_path, "tiny", None)
     with pytest.raises(ValueError, match="--cluster 'laptop'"):
