@@ -243,6 +243,12 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert cli([*args[:3], "1", *args[4:], "--resume"]) == 2
     assert "holds 2 epochs" in capsys.readouterr().err
     assert (out / "result.json").read_text() == before
+    # the same run under another spelling of its directory or thread count still resumes
+    assert cli([*args[:3], "3", *args[4:-4], str(out) + "/", *args[-3:], "--threads", "2",
+                "--resume"]) == 0
+    assert len(control.load_history(out / "history.csv")) == 3
+    assert cli([*args[:3], "3", *args[4:], "--lr", "0.01", "--resume"]) == 2
+    assert "differs in lr" in capsys.readouterr().err
     assert cli(["control", "guidance", "--poles", "2"]) == 2
     assert "--poles applies to cartpole, not guidance" in capsys.readouterr().err
     assert cli(["control", "cartpole", "--mode", "X", "--out", str(tmp_path / "x")]) == 2

@@ -307,8 +307,12 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
     history: list[dict] = []
     if ckpt_path.exists():
         ckpt = _load(ckpt_path)
-        if ckpt["config"] != asdict(cfg) | {"epochs": ckpt["config"]["epochs"]}:
-            raise ValueError(f"{out} holds a run of another configuration; use a new --out")
+        # the epoch count may grow; where the run lives and how many threads it uses may change
+        differ = sorted(k for k, v in asdict(cfg).items()
+                        if k not in ("epochs", "out", "threads") and ckpt["config"].get(k) != v)
+        if differ:
+            raise ValueError(f"{out} holds a run of another configuration (differs in "
+                             f"{', '.join(differ)}); use a new --out")
         if ckpt["state"]["epoch"] > cfg.epochs:
             raise ValueError(f"{out} holds {ckpt['state']['epoch']} epochs; pass --epochs "
                              f"{ckpt['state']['epoch']} or more, or choose another --out")
