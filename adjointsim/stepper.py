@@ -289,7 +289,9 @@ class Stepper:
                     f"{list(self.param_names)}; got an array of shape {values.shape}"
                 )
         if not np.all(np.isfinite(values)):
-            raise ValueError(f"{self.name}: parameters {values} must be finite")
+            bad = ", ".join(f"{k} = {v!r}" for k, v in zip(self.param_names, values.tolist())
+                            if not np.isfinite(v))
+            raise ValueError(f"{self.name}: parameters must be finite, got {bad}")
         self.check_params(values)
         out = np.ascontiguousarray(values, dtype=dtype)
         if params is None:

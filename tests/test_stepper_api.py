@@ -40,6 +40,8 @@ def test_bad_controls_and_params():
         s.rollout(u, 3, controls=np.zeros((3, 2, 1, 16), dtype=np.float32))
     with pytest.raises(ValueError, match="its parameters are"):
         s.rollout(u, 1, params={"viscosity": 1.0})
+    with pytest.raises(ValueError, match=r"parameters must be finite, got nu = nan$"):
+        s.rollout(u, 1, params={"nu": np.nan})
     with pytest.raises(ValueError, match="keep must be"):
         s.rollout(u, 1, keep="some")
 
