@@ -197,6 +197,13 @@ def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch)
     assert json.loads((tmp_path / "result.json").read_text())["optimizer"] == "hig"
 
 
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    (tmp_path / "checkpoint.pt").write_text("garbage\n")
+    cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=2)
+    with pytest.raises(ValueError, match="checkpoint.pt is corrupt or not a checkpoint"):
+        train_run(cfg, tmp_path, resume=True, progress=False)
+
+
 def test_cli_runs_and_refuses_in_one_line(tmp_path, capsys):
     from adjointsim.cli import main
 

@@ -310,7 +310,11 @@ def train_run(
     state = {"wall": 0.0, "updates": 0, "next_eval": 0.0, "history": [], "losses": [],
              "diverged": False}
     if ckpt_path.exists():
-        ckpt = torch.load(ckpt_path, weights_only=False)
+        try:
+            ckpt = torch.load(ckpt_path, weights_only=False)
+        except Exception as e:  # noqa: BLE001 - any unreadable file is reported the same way
+            raise ValueError(f"{ckpt_path} is corrupt or not a checkpoint ({type(e).__name__}: "
+                             f"{e}); delete it to start again") from None
         if ckpt["config"] != config:
             raise RunExists(f"{out} holds a run of another configuration {ckpt['config']}; "
                             "choose another --out")
