@@ -353,7 +353,8 @@ def fit(
     zero controls when fitted, none otherwise, the scene's parameters), ``bounds``
     ({parameter: (lo, hi)}, either side None), ``tikhonov`` and ``smoothness`` (λ_T, λ_S, module
     doc), ``checkpoint`` (for the vjp). ``method``, ``tol`` and ``options`` go to
-    :func:`scipy.optimize.minimize` (``maxiter`` is put in ``options``). ``callback`` gets each
+    :func:`scipy.optimize.minimize` (``maxiter`` is put in ``options``; for TNC, which has no
+    iteration limit, as ``maxfun``, a limit on evaluations). ``callback`` gets each
     iteration's history row.
     """
     if isinstance(maxiter, bool) or int(maxiter) != maxiter or maxiter < 0:
@@ -375,7 +376,8 @@ def fit(
 
     z0 = prob.z0
     record(z0)
-    opts = {"maxiter": int(maxiter), **dict(options or {})}
+    # TNC has no iteration limit, only one on evaluations (scipy ignores its maxiter)
+    opts = {"maxfun" if method == "TNC" else "maxiter": int(maxiter), **dict(options or {})}
     if maxiter == 0:
         z, success, message, nit = z0, True, "maxiter = 0: the starting guess", 0
     else:

@@ -91,6 +91,19 @@ def test_fit_rejects_bad_input():
     with pytest.raises(ValueError, match=r"empty batch \(B = 0\)"):
         fit(heat, {2: u[:0]})
 
+def test_maxiter_bounds_tnc():
+    """TNC has no maxiter option (scipy warned and ignored it): its budget is maxfun."""
+    import warnings
+
+    heat = adjointsim.get("diffusion1d-ftcs")(n=16)
+    u = heat.random_state(np.random.default_rng(5))
+    obs = {4: heat.rollout(u, 4)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = fit(heat, obs, method="TNC", maxiter=2, tol=1e-30)
+    assert r.evaluations <= 2 + 2  # the budget, the start and the final record
+
+
 def test_fit_reports_a_non_finite_start():
     burgers = adjointsim.get("burgers1d-rusanov")(n=16, nu=0.1)
     u0 = 50.0 * burgers.random_state(np.random.default_rng(4))
