@@ -275,7 +275,9 @@ def command(names: list[str], everything: bool, size: str, jobs: int, cluster: s
     except runner.CellsFailed as e:
         rows, failed = e.rows, e.failures
     print(table(rows))
-    print(f"table: {out_dir / 'stability.md'}; plot: {out_dir / 'stability.png'}")
+    plotted = any(r["n"] for r in rows)  # report() plots against the grid size only
+    print(f"table: {out_dir / 'stability.md'}"
+          + (f"; plot: {out_dir / 'stability.png'}" if plotted else ""))
     if json_path:
         write_text(json_path, runner.dumps(rows) + "\n")
     for cell_id, error in failed:

@@ -38,3 +38,13 @@ def test_stability_command(tmp_path):
     assert "| advection1d-upwind | 32 |" in (out / "stability.md").read_text()
     assert (out / "stability.png").stat().st_size > 0
     assert main(["stability", "poisson2d", "--cluster", "none"]) == 2  # no time step
+
+
+def test_stability_command_without_grids_names_no_plot(tmp_path, capsys):
+    # oscillators-rk4 has no grid size: no plot is drawn, so none is announced
+    out = tmp_path / "osc"
+    assert main(["stability", "oscillators-rk4", "--size", "tiny", "--cluster", "none",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"table: {out / 'stability.md'}" in printed
+    assert not (out / "stability.png").exists() and "stability.png" not in printed
