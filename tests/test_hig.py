@@ -194,6 +194,9 @@ def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch)
     with pytest.raises(RunExists, match="finished"):
         train_run(cfg, tmp_path, progress=False)
     assert train_run(cfg, tmp_path, resume=True, progress=False) == result
+    other = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=5)
+    with pytest.raises(RunExists, match="differs in max_updates"):
+        train_run(other, tmp_path, resume=True, progress=False)
     assert json.loads((tmp_path / "result.json").read_text())["optimizer"] == "hig"
 
 

@@ -65,6 +65,9 @@ def test_run_writes_history_plots_and_refuses_to_overwrite(tmp_path):
     with pytest.raises(pinn.RunExists, match="finished run"):
         train_run(_cfg(weighting="id"), out, progress=False)
     assert train_run(_cfg(weighting="id"), out, resume=True, progress=False) == result
+    # resuming it under another configuration does not pass its result off as the new one's
+    with pytest.raises(pinn.RunExists, match="differs in epochs"):
+        train_run(_cfg(weighting="id", epochs=3), out, resume=True, progress=False)
 
 
 def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):

@@ -71,13 +71,20 @@ class RunExists(FileExistsError):
     """The output directory holds a finished run, or an unfinished one without ``--resume``."""
 
 
-def finished_result(out: Path, resume: bool) -> dict | None:
+def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict | None:
     """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
-    when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``."""
+    when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
+    With ``config``, a finished run whose result disagrees with it is ``RunExists`` too."""
     result_path = out / "result.json"
     if result_path.exists():
         if resume:
-            return json.loads(result_path.read_text())
+            result = json.loads(result_path.read_text())
+            differ = sorted(k for k, v in json.loads(json_text(config or {})).items()
+                            if result.get(k) != v)
+            if differ:
+                raise RunExists(f"{out} holds a finished run of another configuration "
+                                f"(differs in {', '.join(differ)}); choose another --out")
+            return result
         raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
     if (out / "checkpoint.pt").exists() and not resume:
         raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")

@@ -296,11 +296,11 @@ def train_run(
     cfg.validate()
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    finished = finished_result(out, resume)
+    config = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
+    finished = finished_result(out, resume, config)
     if finished is not None:
         return finished
     out.mkdir(parents=True, exist_ok=True)
-    config = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
     torch.manual_seed(cfg.seed)
     problem = make_problem(cfg.problem, cfg.seed, cfg.size)
     settings = problem.settings[cfg.optimizer]

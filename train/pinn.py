@@ -341,7 +341,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     config = asdict(cfg)
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    finished = finished_result(out, resume)
+    finished = finished_result(out, resume, config)
     if finished is not None:
         return finished
     model = problem.model()
