@@ -310,7 +310,7 @@ def run_fit(obs_file: Path, scene_name: str | None, out: Path, args: argparse.Na
 
     data = read_observations(obs_file, scene_name)
     scene = make_scene(data["scene"], data["config"])
-    wrt = args.wrt or data.get("wrt") or "state"
+    wrt = args.wrt or "state"
     parse_wrt(scene, wrt)  # an unknown entry fails before anything runs
     params = {**data["params"], **{k: _number(v, f"--start {k}")
                                    for k, v in _pairs(args.start, "--start").items()}}

@@ -73,10 +73,6 @@ def get_study(name: str) -> Study:
     return _STUDIES[name]
 
 
-def study_names() -> list[str]:
-    return sorted(_STUDIES)
-
-
 class CellsFailed(RuntimeError):
     """Some cells failed (after their retries); the others finished.
 
