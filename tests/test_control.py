@@ -210,6 +210,8 @@ def test_bad_inputs_name_the_problem():
         control.ControlConfig.load(mode="F")
     with pytest.raises(ValueError, match="'epochs' must be int"):
         control.ControlConfig.load(epochs="ten")
+    with pytest.raises(ValueError, match="lr must be a finite number > 0, not inf"):
+        control.ControlConfig.load(lr=float("inf"))
 
 
 def test_toml_config(tmp_path):

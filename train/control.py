@@ -272,8 +272,8 @@ class ControlConfig:
                 raise ValueError(f"{k} must be ≥ 1, not {getattr(self, k)}")
         if self.batch > self.train:
             raise ValueError(f"batch ({self.batch}) must not exceed train ({self.train})")
-        if not self.lr > 0:
-            raise ValueError(f"lr must be > 0, not {self.lr}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be a finite number > 0, not {self.lr}")
 
 
 # ----------------------------------------------------------------------------- training
