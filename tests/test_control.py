@@ -251,6 +251,10 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert len(control.load_history(out / "history.csv")) == 3
     assert cli([*args[:3], "3", *args[4:], "--lr", "0.01", "--resume"]) == 2
     assert "differs in lr" in capsys.readouterr().err
+    # stopped after the last checkpoint but before result.json: --resume writes it
+    (out / "result.json").unlink()
+    assert cli([*args[:3], "3", *args[4:], "--resume"]) == 0
+    assert json.loads((out / "result.json").read_text())["epochs"] == 3
     assert cli(["control", "guidance", "--poles", "2"]) == 2
     assert "--poles applies to cartpole, not guidance" in capsys.readouterr().err
     assert cli(["control", "cartpole", "--mode", "X", "--out", str(tmp_path / "x")]) == 2

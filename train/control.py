@@ -316,7 +316,9 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
         if ckpt["state"]["epoch"] > cfg.epochs:
             raise ValueError(f"{out} holds {ckpt['state']['epoch']} epochs; pass --epochs "
                              f"{ckpt['state']['epoch']} or more, or choose another --out")
-        if ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs:
+        # (a run stopped between its last checkpoint and result.json resumes to write it)
+        if (ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs
+                and (out / "result.json").exists()):
             if not resume:
                 raise ValueError(f"{out} holds a finished run; choose another --out "
                                  "(or delete it to train again)")
