@@ -48,6 +48,13 @@ def test_nog_never_runs_the_solver_adjoint_and_wig_does(tiny, correction):
     assert bridge.ADJOINT_CALLS["count"] > before
 
 
+def test_combined_mode_by_name_is_refused(tiny):
+    """C's update needs flow.backward; a plain loss.backward() would silently be g_R / 2."""
+    frames, params, cond = _batch(tiny, 2)
+    with pytest.raises(ValueError, match=r"mode 'C' needs a GradientFlow"):
+        unrolled_loss(_model(), frames, params, cond, "C")
+
+
 def test_wig_gradient_matches_finite_differences(tiny):
     model = _model()
     frames, params, cond = _batch(tiny, 3)

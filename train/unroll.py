@@ -227,6 +227,10 @@ def unrolled_loss(
     """
     name = mode.name if isinstance(mode, GradientFlow) else mode
     flow = mode if isinstance(mode, GradientFlow) else GradientFlow(mode)
+    if flow.doubled and flow is not mode:
+        # loss.backward() over the doubled batch would silently give g_R / 2, not C's update
+        raise ValueError(f"mode {name!r} needs a GradientFlow: pass flow = GradientFlow("
+                         f"{name!r}) and take the update from flow.backward(loss, params)")
     m = frames.shape[1] - 1 - warmup
     if m < 1 or (name == "ONE" and m != 1):
         need = "1" if name == "ONE" else "m ≥ 1"
