@@ -97,12 +97,9 @@ def _forward(
     c = stepper._check_controls(controls, n, u)
     p = stepper.param_array(params, u.dtype)
     store = grad and checkpoint is None
-    if n == 0 or u.shape[0] == 0:
-        # Nothing to advance: no kernel call (u_n = u_0, and an empty batch stays empty).
-        states = np.broadcast_to(u, (n + 1, *u.shape)).copy()
-    else:
-        states = stepper._run(u, n, c, p, keep_all=keep_all or store)
-        stepper._raise_if_nonfinite(states, keep_all or store, u, c, p, n=n)
+    # Zero steps or an empty batch call no kernel: the stepper's _run and _vjp see to that.
+    states = stepper._run(u, n, c, p, keep_all=keep_all or store)
+    stepper._raise_if_nonfinite(states, keep_all or store, u, c, p, n=n)
     if keep_all:
         out = states.copy() if store else states
     elif states.shape[0] == n + 1:
@@ -135,11 +132,6 @@ def _backward(
     """Cotangents of (u0, controls, params) from the output's cotangent ``grad``."""
     stepper, n, u0, c, p, trajectory, checkpoint = saved
     cot = np.ascontiguousarray(grad)
-    if n == 0 or u0.shape[0] == 0:
-        # A copy: torch may accumulate into a returned gradient in place.
-        g_u = cot.sum(axis=0) if keep_all else cot.copy()
-        g_p = np.zeros(p.shape, dtype=p.dtype) if want_params else None
-        return g_u, np.zeros_like(c), g_p
     # Stepper.vjp minus its validation (done in the forward pass); positional, as vjp calls it
     # (subclasses wrap _vjp with *args).
     g = stepper._vjp(
