@@ -30,6 +30,7 @@ import math
 import os
 import sys
 import uuid
+import warnings
 from collections.abc import Callable
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
@@ -274,10 +275,14 @@ def _dask_client(study: Study, out: Path, cluster: str, workers: int, retries: i
     with dask.config.set({"distributed.scheduler.allowed-failures": retries,
                           "distributed.nanny.pre-spawn-environ": _ONE_THREAD}):
         if cluster == "local":
-            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                              dashboard_address=None, silence_logs=logging.CRITICAL) as local:
-                with Client(local) as client:
-                    yield client
+            with warnings.catch_warnings():
+                # without a dashboard the scheduler still serves /health on 8787 or, when a
+                # second study holds that port, on a random one, with a warning that is noise
+                warnings.filterwarnings("ignore", "Port 8787 is already in use")
+                local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                     dashboard_address=None, silence_logs=logging.CRITICAL)
+            with local, Client(local) as client:
+                yield client
         else:
             client = _connect(cluster)
             try:

@@ -420,18 +420,18 @@ class Stepper:
                 f"{checkpoint!r}; pass None to keep every state"
             )
         dtype = np.result_type(u0, p, cot)
-        ubar = np.zeros(u0.shape, dtype=dtype)
-        if cmap[n] >= 0:
-            ubar += cot[cmap[n]]
+        last = cmap[n]
+        ubar = cot[last].astype(dtype) if last >= 0 else np.zeros(u0.shape, dtype=dtype)
         cbar = np.zeros(ctrl.shape, dtype=dtype)
-        pbar = np.zeros(len(self.param_names), dtype=np.result_type(np.float64, dtype))
+        pbar = np.zeros(len(self.param_names), dtype=np.float64)
         if n and u0.shape[0]:  # else nothing to reverse: no kernel call
-            sweep = _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params)
-            if trajectory is not None:
-                sweep.reverse_stored(np.ascontiguousarray(trajectory[:n]), 0, n)
+            if trajectory is not None:  # a closed loop's step lands here: no sweep to plan
+                self._adjoint(np.ascontiguousarray(trajectory[:n]), ctrl, p, cot, cmap[:n],
+                              ubar, cbar, pbar, wrt_params)
             else:
                 budget = n + 2 if checkpoint is None else int(checkpoint)
-                sweep.reverse(u0.astype(dtype, copy=False), n, budget)
+                _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params).reverse(
+                    u0.astype(dtype, copy=False), n, budget)
         if not _all_finite(ubar):
             states = self._run(u0, n, ctrl, p, keep_all=False)
             self._raise_if_nonfinite(states, False, u0, ctrl, p, n=n)

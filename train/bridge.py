@@ -73,7 +73,7 @@ class _Saved(NamedTuple):
     u0: np.ndarray  # (B, C, *grid)
     controls: np.ndarray  # (n, B, *control_shape), or a zero-length first axis
     params: np.ndarray
-    trajectory: np.ndarray | None  # u_0 .. u_n, or None to recompute from checkpoints
+    trajectory: np.ndarray | None  # u_0 .. u_{n-1}, or None to recompute from checkpoints
     checkpoint: int | None
 
 
@@ -103,7 +103,7 @@ def _forward(
     if keep_all:
         out = states.copy() if store else states
     elif states.shape[0] == n + 1:
-        out = states[n].copy() if store else states[n]
+        out = states[n]  # the backward pass reverses from u_0 .. u_{n-1} only: no copy needed
     else:
         out = states[n % 2]  # the ping-pong buffer of an unstored rollout
     saved = None
@@ -111,7 +111,7 @@ def _forward(
         saved = _Saved(
             stepper, n, states[0] if store else u.copy(), c.copy(),
             p if params is None else p.copy(),  # the scene's own array is never written
-            states if store else None, checkpoint,
+            states[:n] if store else None, checkpoint,
         )
     return out, saved
 

@@ -75,7 +75,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--quick", action="store_const", const="quick", dest="size",
                    help="a reduced study (minutes); same as --size quick")
     s.add_argument("--size", default="full",
-                   help="tiny (seconds, a smoke test of the whole pipeline), quick or full")
+                   help="tiny (seconds, a smoke test of the whole pipeline), quick or full; "
+                   "ks also has paper and paper-large (issue 14's protocol, 5 and 2 seeds of "
+                   "correction models; hours), other studies their own (an unknown size lists "
+                   "them)")
     s.add_argument("--seeds", type=_at_least(1), default=None)
     s.add_argument("--jobs", type=_at_least(1), default=2,
                    help="worker processes of the local cluster (one thread each; default 2)")

@@ -227,7 +227,13 @@ class SchrodingerCN(Stepper):
         return (psi / norm).astype(dtype)
 
     def _args(self, dtype: Any) -> tuple:
-        return 0.5 * self.dt, self.kinetic, self.x.astype(dtype), self.potential.astype(dtype)
+        # cached per dtype: a controller calls the kernels once per step
+        cache = self.__dict__.setdefault("_args_cache", {})
+        key = np.dtype(dtype)
+        if key not in cache:
+            cache[key] = (0.5 * self.dt, self.kinetic, self.x.astype(dtype),
+                          self.potential.astype(dtype))
+        return cache[key]
 
     def _forward(self, states, n, ctrl, p):
         cn_forward(states, n, ctrl, p, *self._args(states.dtype))
