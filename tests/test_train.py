@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 import torch
 
+from adjointsim.cli import UserError
 from train import bridge
 from train import data as datamod
 from train.model import NeuralStepper
 from train.problems import get_problem
-from train.trainer import TrainConfig, build_model, load_checkpoint, train
+from train.trainer import TrainConfig, build_model, load_checkpoint, save_checkpoint, train
 from train.unroll import unrolled_loss
 
 
@@ -455,3 +456,49 @@ def test_study_command_sizes(argv, size):
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command"))
     assert parser.parse_args(["study", "ks", *argv]).size == size
+
+
+def test_rollback_guard_restores_the_best_weights_and_halves_the_rate(tiny, tmp_path,
+                                                                     monkeypatch):
+    import train.trainer as trainer
+
+    # A runaway from update 301 on: the loss (and its gradients) 50x higher, gradually enough
+    # for the spike cutoff (disabled here) to let it through.
+    real = trainer.unrolled_loss
+    calls = {"n": 0}
+
+    def runs_away(*args, **kw):
+        calls["n"] += 1
+        return real(*args, **kw) * (50.0 if calls["n"] > 300 else 1.0)
+
+    monkeypatch.setattr(trainer, "unrolled_loss", runs_away)
+    cfg = _config(tiny, tmp_path / "g", epochs=400, checkpoint_every=1000, max_iterations=400,
+                  rollback=3.0, spike_factor=1e12, lr_decay=1.0)
+    model = train(cfg, progress=False)
+    ckpt = load_checkpoint(tmp_path / "g" / "checkpoint.pt")
+    assert ckpt["state"]["rollbacks"] == 1 and ckpt["state"]["lr_scale"] == 0.5
+    # the weights are those of the best window, before the runaway
+    for key, value in ckpt["best"]["model"].items():
+        assert torch.equal(model.state_dict()[key], value)
+    assert len(ckpt["history"]) == 400 and ckpt["history"][-1]["lr"] == pytest.approx(1e-3)
+    # the next update runs at half the rate
+    train(_config(tiny, tmp_path / "g", epochs=400, checkpoint_every=1000, max_iterations=401,
+                  rollback=3.0, spike_factor=1e12, lr_decay=1.0), resume=True, progress=False)
+    history = load_checkpoint(tmp_path / "g" / "checkpoint.pt")["history"]
+    assert history[-1]["lr"] == pytest.approx(5e-4)
+
+
+def test_rollback_option_is_checked_and_old_checkpoints_resume(tiny, tmp_path):
+    with pytest.raises(UserError, match="'rollback'.*0 \\(off\\) or a number > 1"):
+        _config(tiny, tmp_path / "r", rollback=0.5)
+    train(_config(tiny, tmp_path / "old", max_iterations=2), progress=False)
+    # a checkpoint written before the option existed resumes with it off
+    path = tmp_path / "old" / "checkpoint.pt"
+    ckpt = load_checkpoint(path)
+    del ckpt["config"]["rollback"]
+    for key in ("lr_scale", "best", "rollbacks"):
+        del ckpt["state"][key]
+    del ckpt["best"]
+    save_checkpoint(ckpt, path)
+    train(_config(tiny, tmp_path / "old", max_iterations=4), resume=True, progress=False)
+    assert len(load_checkpoint(path)["history"]) == 4

@@ -15,6 +15,7 @@ before digests load with a warning and get one at their next save.
 
 from __future__ import annotations
 
+import copy
 import csv
 import difflib
 import hashlib
@@ -97,6 +98,9 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     # An update is skipped when its gradient norm exceeds spike_factor × the running mean:
     # at ≤ 1 every update above the mean would be skipped. Use a large value to disable it.
     "spike_factor": Interval(1, lo_open=True),
+    # 0 turns it off; in (0, 1] it would roll back on every window that is not a new best
+    # (refused in TrainConfig.validate).
+    "rollback": Interval(0),
     "checkpoint_every": Interval(1),
     # numpy's SeedSequence takes non-negative integers, torch.manual_seed up to 2⁶⁴ − 1.
     "seed": Interval(0, 2**63 - 1),
@@ -132,6 +136,9 @@ class TrainConfig:
     truncate: int = 0
     #: skip an update whose gradient norm exceeds this multiple of the running mean
     spike_factor: float = 10.0
+    #: roll back to the best weights and halve the learning rate when the median loss of the
+    #: last ROLLBACK_WINDOW updates exceeds this multiple of the best such median (0: off)
+    rollback: float = 0.0
     checkpoint_every: int = 200
     seed: int = 0
     #: torch threads; small convolutions run fastest on one, and 2-core machines are shared
@@ -186,6 +193,9 @@ class TrainConfig:
                 raise UserError(f"config key {key!r}{where}: {value!r} is not {_accepted(key)}")
             if isinstance(rule, str) and expected is str and not value:
                 raise UserError(f"config key {key!r}{where}: needs {rule}")
+        if not (self.rollback == 0 or self.rollback > 1):
+            raise UserError(f"config key 'rollback'{where}: {self.rollback!r} is not "
+                            "0 (off) or a number > 1")
         for stage in self.curriculum:
             ok = (isinstance(stage, list | tuple) and len(stage) == 2
                   and type(stage[0]) is int and type(stage[1]) in (int, float)
@@ -359,26 +369,31 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
 
     model = build_model(cfg)
     optimizer = torch.optim.Adam(model.parameters(), lr=plan[0]["lr"])
-    state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0}
+    state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
+             "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
+    best = None  # the weights and optimiser state at state["best"], for a rollback
     history: list[dict] = []
     ckpt_path = out / "checkpoint.pt"
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
-        ours = asdict(cfg) | {"max_iterations": ckpt["config"]["max_iterations"]}
-        if ckpt["config"] != ours:
-            differ = sorted(k for k in ours.keys() | ckpt["config"].keys()
-                            if ours.get(k) != ckpt["config"].get(k))
+        # options added since the checkpoint was written take their defaults
+        theirs = asdict(TrainConfig()) | ckpt["config"]
+        ours = asdict(cfg) | {"max_iterations": theirs["max_iterations"]}
+        if theirs != ours:
+            differ = sorted(k for k in ours.keys() | theirs.keys()
+                            if ours.get(k) != theirs.get(k))
             raise UserError(f"{ckpt_path} was written with another configuration (differs in "
                             f"{', '.join(differ)}); train into a new --out or use --overwrite")
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
-        state, history = ckpt["state"], ckpt["history"]
+        state, history = state | ckpt["state"], ckpt["history"]
+        best = ckpt.get("best")
     write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
 
     def save() -> None:
         save_checkpoint({"config": asdict(cfg), "model": model.state_dict(),
                          "optimizer": optimizer.state_dict(), "state": state,
-                         "history": history}, ckpt_path)
+                         "history": history, "best": best}, ckpt_path)
 
     total_iterations = sum(s["iterations"] for s in plan)
     bar = tqdm(total=total_iterations, initial=state["total"], desc=f"train {cfg.mode}",
@@ -402,7 +417,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
             pick = torch.from_numpy(wins)[order[pos * stage["batch"]:(pos + 1) * stage["batch"]]]
             traj, start = pick[:, 0], pick[:, 1]
             frames = frames_all[traj[:, None], start[:, None] + offsets]
-            lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every)
+            lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every) * state["lr_scale"]
             for group in optimizer.param_groups:
                 group["lr"] = lr
             optimizer.zero_grad(set_to_none=True)
@@ -431,6 +446,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                             "m": stage["m"], "lr": lr, "loss": loss.item(), "skipped": skipped})
             state["iteration"] += 1
             state["total"] += 1
+            if cfg.rollback and state["iteration"] % ROLLBACK_WINDOW == 0:
+                best = _guard(cfg.rollback, history, state, model, optimizer, best)
             bar.update()
             bar.set_postfix(loss=f"{loss.item():.3e}", m=stage["m"])
             if state["total"] % cfg.checkpoint_every == 0:
@@ -438,11 +455,35 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         state["stage"] += 1
         state["iteration"] = 0
         state["grad_ema"] = 0.0
+        state["best"], best = math.inf, None  # a longer unroll has a larger loss
     bar.close()
     state["finished"] = True
     save()
     _write_history(history, out)
     return model
+
+
+#: updates per window of the rollback guard
+ROLLBACK_WINDOW = 100
+
+
+def _guard(factor: float, history: list[dict], state: dict, model, optimizer, best):
+    """The divergence guard: after each window, remember the weights of the best window so far,
+    or, when the window's median loss exceeds ``factor`` × the best, restore them and halve the
+    learning rate. Unrolled NOG training can run away late in training (README, "Unrolling
+    across seeds"): the loss rises 100x over ~100 updates, too gradually for the spike cutoff,
+    and does not come back. Returns the (possibly new) best snapshot."""
+    losses = [h["loss"] for h in history[-ROLLBACK_WINDOW:] if not h["skipped"]]
+    median = float(np.median(losses)) if losses else math.inf
+    if median < state["best"]:
+        state["best"] = median
+        return copy.deepcopy({"model": model.state_dict(), "optimizer": optimizer.state_dict()})
+    if best is not None and not median <= factor * state["best"]:
+        model.load_state_dict(best["model"])
+        optimizer.load_state_dict(best["optimizer"])
+        state["lr_scale"] *= 0.5
+        state["rollbacks"] += 1
+    return best
 
 
 def _write_history(history: list[dict], out: Path) -> None:
