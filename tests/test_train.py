@@ -162,24 +162,30 @@ def test_curriculum_stages_and_one_scaling(tiny, tmp_path):
     assert one[0]["iterations"] == 4 * one[0]["per_epoch"]
 
 
+def _scale_loss_after(monkeypatch, calls: int, factor: float) -> None:
+    """Make the trainer's loss (and its gradients) ``factor`` × larger from call calls + 1 on."""
+    import train.trainer as trainer
+
+    count = {"n": 0}
+
+    def scaled(*args, **kw):
+        count["n"] += 1
+        return unrolled_loss(*args, **kw) * (factor if count["n"] > calls else 1.0)
+
+    monkeypatch.setattr(trainer, "unrolled_loss", scaled)
+
+
 def test_spiking_and_non_finite_updates_are_skipped(tiny, tmp_path, monkeypatch):
     import train.trainer as trainer
 
     # Gradients 10⁶× larger than before are skipped once the running mean exists (20 steps).
-    real = trainer.unrolled_loss
-    calls = {"n": 0}
-
-    def spikes_late(*args, **kw):
-        calls["n"] += 1
-        return real(*args, **kw) * (1e6 if calls["n"] > 21 else 1)
-
-    monkeypatch.setattr(trainer, "unrolled_loss", spikes_late)
+    _scale_loss_after(monkeypatch, 21, 1e6)
+    real, calls = unrolled_loss, {"n": 0}
     cfg = _config(tiny, tmp_path / "s", epochs=30, checkpoint_every=1000, max_iterations=24)
     train(cfg, progress=False)
     ckpt = load_checkpoint(tmp_path / "s" / "checkpoint.pt")
     assert [h["skipped"] for h in ckpt["history"]] == [False] * 21 + [True] * 3
     # A non-finite loss is never stepped on.
-    calls["n"] = 0
 
     def sometimes_nan(*args, **kw):
         calls["n"] += 1
@@ -460,18 +466,9 @@ def test_study_command_sizes(argv, size):
 
 def test_rollback_guard_restores_the_best_weights_and_halves_the_rate(tiny, tmp_path,
                                                                      monkeypatch):
-    import train.trainer as trainer
-
     # A runaway from update 301 on: the loss (and its gradients) 50x higher, gradually enough
     # for the spike cutoff (disabled here) to let it through.
-    real = trainer.unrolled_loss
-    calls = {"n": 0}
-
-    def runs_away(*args, **kw):
-        calls["n"] += 1
-        return real(*args, **kw) * (50.0 if calls["n"] > 300 else 1.0)
-
-    monkeypatch.setattr(trainer, "unrolled_loss", runs_away)
+    _scale_loss_after(monkeypatch, 300, 50.0)
     cfg = _config(tiny, tmp_path / "g", epochs=400, checkpoint_every=1000, max_iterations=400,
                   rollback=3.0, spike_factor=1e12, lr_decay=1.0)
     model = train(cfg, progress=False)
