@@ -9,7 +9,7 @@ import torch
 
 from adjointsim.cli import main as cli
 from train import pinn
-from train.pinn import PinnConfig, make_problem, milestones, read_history, train_run
+from train.pinn import PinnConfig, make_problem, read_history, train_run
 
 TINY = {"width": 6, "depth": 2, "collocation": 40, "edge_points": 6, "log_every": 2}
 TINY_ARGS = ["--width", "6", "--depth", "2", "--collocation", "40", "--edge-points", "6",
@@ -30,7 +30,7 @@ def test_problem_matches_the_note():
     assert sum(m.numel() for m in p.model().parameters()) == 10401
     w = 3 * math.pi
     assert p.analytic_weights()["res"] == pytest.approx(1 / (1 + w**4))
-    assert milestones(30001) == [10000, 20000, 30000]
+    assert p.milestones(30001) == [10000, 20000, 30000]
     # the exact solution solves the equation: Δu = f with u = cos(ωx) sin(ωy)
     x = p.x_col[:5].double().requires_grad_(True)
     u = p.exact(x).sum()
@@ -74,7 +74,7 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     straight = train_run(_cfg(weighting="maxavg"), tmp_path / "a", progress=False, plot=False)
     real, calls = pinn.Poisson.losses, []
 
-    def interrupt(self, model, route="taylor"):
+    def interrupt(self, model, route="taylor", terms=()):
         calls.append(1)
         if len(calls) == 7:
             raise KeyboardInterrupt
@@ -96,7 +96,7 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
 def test_non_finite_losses_skip_the_update_with_a_warning(tmp_path, monkeypatch):
     real, calls = pinn.Poisson.losses, []
 
-    def flaky(self, model, route="taylor"):
+    def flaky(self, model, route="taylor", terms=()):
         calls.append(1)
         terms = real(self, model, route)
         if len(calls) in (3, 4):
@@ -110,7 +110,7 @@ def test_non_finite_losses_skip_the_update_with_a_warning(tmp_path, monkeypatch)
 
 
 def test_lasting_non_finite_losses_end_the_run_as_diverged(tmp_path, monkeypatch, capsys):
-    def broken(self, model, route="taylor"):
+    def broken(self, model, route="taylor", terms=()):
         return {"res": torch.tensor(math.inf), "bc": torch.tensor(1.0)}
 
     monkeypatch.setattr(pinn.Poisson, "losses", broken)
@@ -207,3 +207,96 @@ def test_quick_study_ranks_inverse_dirichlet_below_uniform(tmp_path):
     err = {(r["k"], r["weighting"]): r["rel_l2"] for r in rows}
     for k in (2, 4, 6):
         assert err[(k, "inverse-dirichlet")] < err[(k, "uniform")]
+
+
+# ----------------------------------------------------------------------------- KS inverse
+KS_TINY = {"problem": "ks-inverse", "width": 6, "depth": 2, "collocation": 30,
+           "edge_points": 5, "log_every": 3}
+
+
+def test_ks_inverse_data_are_the_solver_trajectory_and_phases_split_the_epochs():
+    import numpy as np
+
+    from adjointsim import registry
+
+    p = make_problem(PinnConfig(**KS_TINY, epochs=9))
+    scene = registry.get("ks1d-etdrk4")(n=64, length=22.0, dt=0.1)
+    traj = scene.rollout(scene.random_state(np.random.default_rng(1234)), 100, keep="all")
+    u = p.u_grid.reshape(p.shape)  # (x, t)
+    torch.testing.assert_close(u[:, 37].double(), torch.from_numpy(traj[37, 0, 0]),
+                               rtol=1e-6, atol=1e-6)
+    assert p.grid[64 * 101 - 1].tolist() == pytest.approx([22 * 63 / 64, 10.0])
+    assert [p.active(e) for e in (0, 2, 3, 5, 6, 8)] == [
+        ("data",), ("data",), ("data", "periodic"), ("data", "periodic"),
+        ("data", "periodic", "res"), ("data", "periodic", "res")]
+    assert PinnConfig(problem="ks-inverse").epochs == 0
+    cfg = PinnConfig(problem="ks-inverse")
+    cfg.validate()
+    assert cfg.epochs == 6000 and cfg.width == 50
+
+
+def test_ks_inverse_residual_and_periodicity_equal_nested_autograd():
+    p = make_problem(PinnConfig(**KS_TINY, epochs=9))
+    model = p.model().double()
+    with torch.no_grad():
+        model.alpha.fill_(0.7)
+        model.beta.fill_(1.3)
+    for name in ("x_col", "left", "right"):
+        setattr(p, name, getattr(p, name).double())
+    got = p.losses(model, terms=("periodic", "res"))
+    assert set(got) == {"periodic", "res"}  # data was not asked for: not computed
+
+    def derivatives(x, axis, order):
+        x = x.detach().requires_grad_(True)
+        out = [model(x)[:, 0]]
+        for _ in range(order):
+            out.append(torch.autograd.grad(out[-1].sum(), x, create_graph=True)[0][:, axis])
+        return out
+
+    u, ux, uxx, _, uxxxx = derivatives(p.x_col, 0, 4)
+    ut = derivatives(p.x_col, 1, 1)[1]
+    res = ut + u * ux + 0.7 * uxx + 1.3 * uxxxx
+    torch.testing.assert_close(got["res"], (res**2).mean(), rtol=1e-10, atol=1e-12)
+    per = sum(((a - b) ** 2).mean() for a, b in zip(derivatives(p.left, 0, 3),
+                                                    derivatives(p.right, 0, 3)))
+    torch.testing.assert_close(got["periodic"], per, rtol=1e-10, atol=1e-12)
+
+
+def test_ks_inverse_run_adds_terms_in_phases_and_learns_coefficients_last(tmp_path):
+    result = train_run(PinnConfig(**KS_TINY, epochs=9, weighting="id"), tmp_path / "run",
+                       progress=False)
+    phases = result["phases"]
+    assert [p["epoch"] for p in phases] == [3, 6, 9]
+    assert [p["active"] for p in phases] == [["data"], ["data", "periodic"],
+                                             ["data", "periodic", "res"]]
+    # α and β enter the residual only: untouched until it joins
+    assert phases[0]["alpha"] == phases[1]["beta"] == 0.5 and phases[2]["alpha"] != 0.5
+    assert set(result["coefficients"]) == {"alpha", "beta"}
+    refreshes = read_history(tmp_path / "run" / "weights.csv")
+    assert [r["step"] for r in refreshes] == [0, 0, 5]
+    assert refreshes[1]["periodic"] == 1.0 and math.isnan(refreshes[1]["spread/periodic"])
+    # at step 5 (phase 2) the periodic term is balanced against data, the reference
+    assert refreshes[2]["data"] == refreshes[2]["res"] == 1.0 != refreshes[2]["periodic"]
+    hist = read_history(tmp_path / "run" / "history.csv")
+    assert {"alpha", "beta", "loss/res"} <= set(hist[0])
+    assert (tmp_path / "run" / "history.png").exists()
+
+
+def test_ks_inverse_bad_options_are_named():
+    with pytest.raises(ValueError, match="ks-inverse problem has no analytic weights"):
+        make_problem(PinnConfig(problem="ks-inverse", weighting="fixed"))
+    with pytest.raises(ValueError, match="route 'taylor' only"):
+        make_problem(PinnConfig(problem="ks-inverse", route="autograd"))
+
+
+def test_tiny_ks_inverse_study_tables_the_data_loss_by_phase(tmp_path):
+    import train.studies.pinn  # noqa: F401 - registers the study
+    from adjointsim.runner import run
+
+    rows = run("pinn-ks-inverse", tmp_path, "tiny", None, cluster="none", progress=False)
+    assert {(r["weighting"], r["seed"]) for r in rows} == {("uniform", 0),
+                                                         ("inverse-dirichlet", 0)}
+    assert all(len(r["data_by_phase"]) == 3 and 0 < r["beta"] for r in rows)
+    text = (tmp_path / "table.txt").read_text()
+    assert "end / after 1" in text and "inverse-dirichlet" in text
+    assert (tmp_path / "pinn-ks-inverse.png").stat().st_size > 1000

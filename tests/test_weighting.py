@@ -142,3 +142,19 @@ def test_on_a_differentiable_physics_loss_state_and_control_cost():
     assert w.weights["control"] * float(g_c.std()) == pytest.approx(float(g_s.std()), rel=1e-9)
     combined = torch.cat([p.grad.reshape(-1) for p in params])
     torch.testing.assert_close(combined, g_s + w.weights["control"] * g_c)
+
+
+def test_terms_join_one_after_another_and_absent_ones_keep_their_weights():
+    w = Weighting(["data", "bc", "res"], "id", reference="res", alpha=1.0)
+    w.update(0, {"data": RES})  # only the first term is active: nothing to balance
+    assert w.weights == {"data": 1.0, "bc": 1.0, "res": 1.0}
+    # while the named reference is absent, the largest active spread is the reference
+    w.update(1, {"data": RES, "bc": 4 * RES})
+    assert w.weights == pytest.approx({"data": 4.0, "bc": 1.0, "res": 1.0})
+    assert "spread/res" not in w.history[-1]
+    w.update(2, {"data": RES, "bc": 4 * RES, "res": 2 * RES})
+    assert w.weights == pytest.approx({"data": 2.0, "bc": 0.5, "res": 1.0})
+    m = Weighting(["data", "res"], "max-avg", reference="res")
+    assert m.update(0, {"data": RES}) == {"data": 1.0, "res": 1.0}  # its reference is absent
+    with pytest.raises(ValueError, match=r"unknown term\(s\) \['x'\]"):
+        w.update(3, {"x": RES})

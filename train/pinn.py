@@ -44,9 +44,11 @@ from nets.taylor import jets, laplacian
 from .atomic import RunExists, atomic_path, finished_result, write_json, write_text
 from .weighting import Weighting, canonical_rule
 
-PROBLEMS = ("poisson", "sobolev")
+PROBLEMS = ("poisson", "sobolev", "ks-inverse")
 #: each problem's network: activation and the default width (``width = 0``)
-NETWORKS = {"poisson": ("tanh", 50), "sobolev": ("sin", 64)}
+NETWORKS = {"poisson": ("tanh", 50), "sobolev": ("sin", 64), "ks-inverse": ("tanh", 50)}
+#: each problem's default epochs (``epochs = 0``)
+EPOCHS = {"poisson": 30001, "sobolev": 30001, "ks-inverse": 6000}
 ROUTES = ("taylor", "autograd")
 K_RANGE = (1, 6)
 #: the authors' reported relative L2 errors (Adam, ±50%: read off their plot), per k
@@ -69,7 +71,8 @@ class PinnConfig:
     #: the ID reference term: "res", the problem's (Poisson: the residual, as in the authors'
     #: code; Sobolev: the highest derivative), or "max" (the largest spread)
     reference: str = "res"
-    epochs: int = 30001
+    #: 0: the problem's (Poisson and Sobolev 30,001, as the authors; ks-inverse 6000)
+    epochs: int = 0
     seed: int = 0
     lr: float = 1e-3
     alpha: float = 0.5
@@ -96,11 +99,14 @@ class PinnConfig:
                                      f"got {v!r}")
         if self.width == 0:
             self.width = NETWORKS[self.problem][1]
-        if self.problem == "sobolev" and self.route != "taylor":
-            raise ValueError("the sobolev problem takes route 'taylor' only (fourth derivatives)")
-        if self.problem == "sobolev" and self.weighting == "fixed":
-            raise ValueError("the sobolev problem has no analytic weights; choose uniform, "
-                             "inverse-dirichlet or max-avg")
+        if self.epochs == 0:
+            self.epochs = EPOCHS[self.problem]
+        if self.problem != "poisson" and self.route != "taylor":
+            raise ValueError(f"the {self.problem} problem takes route 'taylor' only (fourth "
+                             "derivatives)")
+        if self.problem != "poisson" and self.weighting == "fixed":
+            raise ValueError(f"the {self.problem} problem has no analytic weights; choose "
+                             "uniform, inverse-dirichlet or max-avg")
         if not K_RANGE[0] <= self.k <= K_RANGE[1]:
             raise ValueError(f"k must be in {K_RANGE[0]}..{K_RANGE[1]} (ω = kπ), not {self.k}")
         if self.reference not in ("res", "max"):
@@ -146,17 +152,61 @@ class Standardized(nn.Module):
         return sum(torch.autograd.grad(g[:, i].sum(), x, create_graph=True)[0][:, i:i + 1]
                    for i in range(x.shape[1]))
 
-    def jets(self, x: torch.Tensor, order: int) -> list[torch.Tensor]:
-        """:func:`nets.taylor.jets` along the physical coordinate axes."""
-        return jets(self.mlp, (x - self.mean) / self.std, order, torch.diag(1.0 / self.std))
+    def jets(self, x: torch.Tensor, order: int, axes: tuple[int, ...] = ()) -> list[torch.Tensor]:
+        """:func:`nets.taylor.jets` along the physical coordinate axes (``axes``: only
+        these)."""
+        dirs = torch.diag(1.0 / self.std)
+        return jets(self.mlp, (x - self.mean) / self.std, order, dirs[list(axes)] if axes else dirs)
 
 
-class Poisson:
+class Problem:
+    """What the training loop asks of a problem; the defaults fit a problem whose terms are
+    all active from the start, with no physical coefficient to learn."""
+
+    terms: tuple[str, ...] = ()
+    reference = ""
+    #: the evaluation grid: (rows, columns) and (first min, max, second min, max)
+    shape = (100, 100)
+    extent = (0.0, 1.0, 0.0, 1.0)
+    axes = ("x", "y")
+    grid: torch.Tensor
+    u_grid: torch.Tensor
+
+    def active(self, epoch: int) -> tuple[str, ...]:
+        """The terms trained at ``epoch``."""
+        return self.terms
+
+    def extras(self, model: nn.Module) -> dict[str, float]:
+        """Learned physical coefficients, logged beside the losses."""
+        return {}
+
+    def milestones(self, epochs: int) -> list[int]:
+        """lr × 0.1 at epochs 10k, 20k and 30k, as in the authors' 30,001-epoch runs; a
+        shorter run is the start of theirs (below 10k epochs the lr stays 1e-3)."""
+        return [m for m in (10000, 20000, 30000) if m < epochs]
+
+    @torch.no_grad()
+    def rel_l2(self, model: nn.Module) -> float:
+        u = model(self.grid)
+        return float(torch.linalg.norm(u - self.u_grid) / torch.linalg.norm(self.u_grid))
+
+
+def _tanh_mlp(cfg: PinnConfig, mean: torch.Tensor, std: torch.Tensor) -> Standardized:
+    """[2, width × depth, 1] tanh, Xavier-normal weights with gain 5/3, zero biases."""
+    torch.manual_seed(cfg.seed)
+    mlp = MLP(2, 1, cfg.width, cfg.depth, "tanh")
+    for m in mlp.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.xavier_normal_(m.weight, gain=5.0 / 3.0)
+            nn.init.zeros_(m.bias)
+    return Standardized(mlp, mean, std)
+
+
+class Poisson(Problem):
     """The multi-scale Poisson problem at wavenumber k (see the module doc)."""
 
     terms = ("res", "bc")
     reference = "res"
-    extent = (0.0, 1.0)
 
     def __init__(self, cfg: PinnConfig):
         self.cfg = cfg
@@ -189,15 +239,10 @@ class Poisson:
         return f"Poisson k={self.cfg.k}"
 
     def model(self) -> Standardized:
-        torch.manual_seed(self.cfg.seed)
-        mlp = MLP(2, 1, self.cfg.width, self.cfg.depth, "tanh")
-        for m in mlp.modules():
-            if isinstance(m, nn.Linear):
-                nn.init.xavier_normal_(m.weight, gain=5.0 / 3.0)
-                nn.init.zeros_(m.bias)
-        return Standardized(mlp, self.x_col.mean(dim=0), self.x_col.std(dim=0))
+        return _tanh_mlp(self.cfg, self.x_col.mean(dim=0), self.x_col.std(dim=0))
 
-    def losses(self, model: Standardized, route: str = "taylor") -> dict[str, torch.Tensor]:
+    def losses(self, model: Standardized, route: str = "taylor",
+               terms: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
         res = model.laplacian(self.x_col, route) - self.f_col
         bc = sum(((model(x) - u) ** 2).mean() for x, u in self.edges)
         return {"res": (res**2).mean(), "bc": bc}
@@ -206,13 +251,8 @@ class Poisson:
         lam = 1.0 / (1.0 + self.omega**4)
         return {"res": lam, "bc": 1.0 - lam}
 
-    @torch.no_grad()
-    def rel_l2(self, model: nn.Module) -> float:
-        u = model(self.grid)
-        return float(torch.linalg.norm(u - self.u_grid) / torch.linalg.norm(self.u_grid))
 
-
-class Sobolev:
+class Sobolev(Problem):
     """Sobolev training (the note's problem 2): fit f(x, y) = Σ_{j=1}^{20} A_j cos(l_j x + φ_j)
     · A'_j sin(l'_j y + φ'_j) (A, A' ~ U(−5, 5), l, l' ∈ {1..4}, φ, φ' ~ U(0, 2π), drawn from the
     seed) on (0, 2π]² together with its derivatives: five objectives, the MSEs of f,
@@ -224,7 +264,7 @@ class Sobolev:
 
     terms = ("f", "d1", "d2", "d3", "d4")
     reference = "d4"
-    extent = (0.0, 2.0 * math.pi)
+    extent = (0.0, 2.0 * math.pi) * 2
     title = "Sobolev training"
 
     def __init__(self, cfg: PinnConfig):
@@ -259,23 +299,110 @@ class Sobolev:
         mlp = MLP(2, 1, self.cfg.width, self.cfg.depth, "sin")
         return Standardized(mlp, self.x_col.mean(dim=0), self.x_col.std(dim=0))
 
-    def losses(self, model: Standardized, route: str = "taylor") -> dict[str, torch.Tensor]:
+    def losses(self, model: Standardized, route: str = "taylor",
+               terms: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
         j = model.jets(self.x_col, 4)
         outs = [j[0]] + [jn.sum(dim=1) for jn in j[1:]]
         return {t: ((o - y) ** 2).mean() for t, o, y in zip(self.terms, outs, self.targets)}
 
-    @torch.no_grad()
-    def rel_l2(self, model: nn.Module) -> float:
-        u = model(self.grid)
-        return float(torch.linalg.norm(u - self.u_grid) / torch.linalg.norm(self.u_grid))
+
+class KSInverse(Problem):
+    """A sequential inverse problem on this project's Kuramoto–Sivashinsky solver: learn u(x, t)
+    and the coefficients α, β of u_t + u u_x + α u_xx + β u_xxxx = 0 from a trajectory.
+
+    Data: ``ks1d-etdrk4`` (N = 64, L = 22, Δt = 0.1, α = β = 1) from the smooth random state
+    of ``adjointsim fit --demo ks-params`` (rng 1234), 100 steps: a 64 × 101 space-time grid,
+    t ∈ [0, 10]. The seed draws the points and the network; the trajectory is fixed.
+    Objectives, added one after another (the note's sequential training, with periodicity as
+    the constraint where the active-turbulence problem has incompressibility):
+
+    * ``data``: MSE of u against ``collocation`` grid values drawn from the trajectory;
+    * ``periodic``: Σ_{m=0..3} mean (∂xᵐ u(0, t) − ∂xᵐ u(L, t))² at ``edge_points`` times;
+    * ``res``: mean squared residual u_t + u u_x + α u_xx + β u_xxxx at ``collocation``
+      uniform points, ∂x to fourth order and ∂t from :mod:`nets.taylor` (two passes, so t
+      carries only its first order).
+
+    Phases: ``data`` alone for the first third of the epochs, ``+ periodic`` for the second,
+    ``+ res`` for the last; α and β (trainable, starting at 0.5) get gradients only from the
+    residual. The ID reference is ``data``, the one objective of every phase (the authors
+    name none for this problem); ``reference = "max"`` takes the largest spread. No lr
+    steps. Network [2, 50×5, 1] tanh as for Poisson. Metric: relative L2 of u on the whole
+    trajectory; the result also holds α, β and the data loss at the end of each phase, which
+    shows whether the first objective is forgotten when the others join."""
+
+    terms = ("data", "periodic", "res")
+    reference = "data"
+    axes = ("x", "t")
+    title = "KS inverse (sequential)"
+    start = 0.5
+
+    def __init__(self, cfg: PinnConfig):
+        from adjointsim import registry
+        from adjointsim.fit_cli import demo_problem
+
+        self.cfg = cfg
+        prob = demo_problem("ks-params")
+        scene = registry.get(prob["scene"])(**prob["config"])
+        traj = scene.rollout(prob["u0"], 100, keep="all")[:, 0, 0]  # (101, 64)
+        self.length, self.t_end = scene.length, 100 * scene.dt
+        self.shape = (traj.shape[1], traj.shape[0])
+        self.extent = (0.0, self.length, 0.0, self.t_end)
+        gx, gt = np.meshgrid(np.arange(self.shape[0]) * scene.length / self.shape[0],
+                             np.arange(self.shape[1]) * scene.dt, indexing="ij")
+        self.grid = torch.from_numpy(np.stack([gx.ravel(), gt.ravel()], axis=1)).float()
+        self.u_grid = torch.from_numpy(traj.T.reshape(-1, 1).copy()).float()
+        rng = np.random.default_rng([cfg.seed, 22])
+        pick = rng.choice(len(self.grid), min(cfg.collocation, len(self.grid)), replace=False)
+        self.x_data, self.u_data = self.grid[pick], self.u_grid[pick]
+        t = torch.from_numpy(rng.uniform(0.0, self.t_end, (cfg.edge_points, 1))).float()
+        self.left = torch.cat([torch.zeros_like(t), t], dim=1)
+        self.right = torch.cat([torch.full_like(t, self.length), t], dim=1)
+        self.x_col = torch.from_numpy(
+            rng.uniform((0.0, 0.0), (self.length, self.t_end), (cfg.collocation, 2))).float()
+
+    def model(self) -> Standardized:
+        scale = torch.tensor([self.length, self.t_end])
+        model = _tanh_mlp(self.cfg, scale / 2, scale / math.sqrt(12.0))  # uniform's moments
+        model.alpha = nn.Parameter(torch.tensor(self.start))
+        model.beta = nn.Parameter(torch.tensor(self.start))
+        return model
+
+    def active(self, epoch: int) -> tuple[str, ...]:
+        return self.terms[: 1 + 3 * epoch // self.cfg.epochs]
+
+    def extras(self, model: nn.Module) -> dict[str, float]:
+        return {"alpha": float(model.alpha.detach()), "beta": float(model.beta.detach())}
+
+    def milestones(self, epochs: int) -> list[int]:
+        return []
+
+    def losses(self, model: Standardized, route: str = "taylor",
+               terms: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
+        """The terms named in ``terms`` (all if empty): a term not trained now costs
+        nothing."""
+        terms = terms or self.terms
+        out = {}
+        if "data" in terms:
+            out["data"] = ((model(self.x_data) - self.u_data) ** 2).mean()
+        if "periodic" in terms:
+            left = model.jets(self.left, 3, axes=(0,))
+            right = model.jets(self.right, 3, axes=(0,))
+            out["periodic"] = sum(((a - b) ** 2).mean() for a, b in zip(left, right))
+        if "res" in terms:
+            u, ux, uxx, _, uxxxx = model.jets(self.x_col, 4, axes=(0,))
+            ut = model.jets(self.x_col, 1, axes=(1,))[1]
+            res = (ut[:, 0] + u * ux[:, 0] + model.alpha * uxx[:, 0]
+                   + model.beta * uxxxx[:, 0])
+            out["res"] = (res**2).mean()
+        return out
 
 
-def make_problem(cfg: PinnConfig) -> Poisson | Sobolev:
+def make_problem(cfg: PinnConfig) -> Problem:
     cfg.validate()
-    return Poisson(cfg) if cfg.problem == "poisson" else Sobolev(cfg)
+    return {"poisson": Poisson, "sobolev": Sobolev, "ks-inverse": KSInverse}[cfg.problem](cfg)
 
 
-def make_weighting(cfg: PinnConfig, problem: Poisson | Sobolev) -> Weighting:
+def make_weighting(cfg: PinnConfig, problem: Problem) -> Weighting:
     fixed = problem.analytic_weights() if cfg.weighting == "fixed" else None
     reference = None if cfg.reference == "max" and cfg.weighting == "inverse-dirichlet" \
         else problem.reference
@@ -283,21 +410,16 @@ def make_weighting(cfg: PinnConfig, problem: Poisson | Sobolev) -> Weighting:
                      every=cfg.every, fixed=fixed)
 
 
-def milestones(epochs: int) -> list[int]:
-    """lr × 0.1 at epochs 10k, 20k and 30k, as in the authors' 30,001-epoch runs; a shorter run
-    is the start of theirs (below 10k epochs the lr stays 1e-3)."""
-    return [m for m in (10000, 20000, 30000) if m < epochs]
-
-
 # ----------------------------------------------------------------------------- training
-def history_fields(terms: tuple[str, ...]) -> list[str]:
+def history_fields(terms: tuple[str, ...], extras: tuple[str, ...] = ()) -> list[str]:
     return (["epoch"] + [f"loss/{t}" for t in terms] + [f"weight/{t}" for t in terms]
-            + ["total", "rel_l2", "lr", "skipped", "seconds"])
+            + ["total", "rel_l2", *extras, "lr", "skipped", "seconds"])
 
 
-def _write_history(path: Path, terms: tuple[str, ...], history: list[dict]) -> None:
+def _write_history(path: Path, terms: tuple[str, ...], extras: tuple[str, ...],
+                   history: list[dict]) -> None:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=history_fields(terms))
+    w = csv.DictWriter(buf, fieldnames=history_fields(terms, extras))
     w.writeheader()
     w.writerows(history)
     write_text(path, buf.getvalue())
@@ -347,10 +469,12 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     model = problem.model()
     params = list(model.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr)
-    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones(cfg.epochs), gamma=0.1)
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, problem.milestones(cfg.epochs),
+                                                 gamma=0.1)
     weighting = make_weighting(cfg, problem)
+    extras = tuple(problem.extras(model))
     state = {"epoch": 0, "history": [], "skipped": 0, "streak": 0, "seconds": 0.0,
-             "diverged": False}
+             "diverged": False, "phases": []}
     if ckpt_path.exists():
         ckpt = _load_checkpoint(ckpt_path)
         if ckpt["config"] != config:
@@ -360,7 +484,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
         weighting.load_state_dict(ckpt["weighting"])
-        state = ckpt["state"]
+        state = {"phases": [], **ckpt["state"]}
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "config.json", config)
 
@@ -369,7 +493,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             torch.save({"config": config, "model": model.state_dict(),
                         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                         "weighting": weighting.state_dict(), "state": state}, tmp)
-        _write_history(out / "history.csv", problem.terms, state["history"])
+        _write_history(out / "history.csv", problem.terms, extras, state["history"])
         _write_weights(out / "weights.csv", problem.terms, weighting.history)
 
     def log(epoch: int, losses: dict[str, float]) -> None:
@@ -379,8 +503,17 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             "epoch": epoch, **{f"loss/{t}": losses[t] for t in problem.terms},
             **{f"weight/{t}": weighting.weights[t] for t in problem.terms},
             "total": sum(weighting.weights[t] * losses[t] for t in problem.terms),
-            "rel_l2": problem.rel_l2(model), "lr": opt.param_groups[0]["lr"],
-            "skipped": state["skipped"], "seconds": state["seconds"]})
+            "rel_l2": problem.rel_l2(model), **problem.extras(model),
+            "lr": opt.param_groups[0]["lr"], "skipped": state["skipped"],
+            "seconds": state["seconds"]})
+
+    def end_of_phase(epoch: int) -> None:
+        """Every term and coefficient when a phase (the set of trained terms) ends."""
+        with torch.enable_grad():
+            losses = {t: float(v.detach()) for t, v in problem.losses(model, cfg.route).items()}
+        state["phases"].append({"epoch": epoch, "active": list(problem.active(epoch - 1)),
+                                **losses, "rel_l2": problem.rel_l2(model),
+                                **problem.extras(model)})
 
     bar = None
     if progress:
@@ -394,9 +527,11 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             epoch = state["epoch"]
             t0 = time.perf_counter()
             opt.zero_grad(set_to_none=True)
-            losses = problem.losses(model, cfg.route)
+            active = problem.active(epoch)
+            logging = epoch % cfg.log_every == 0
+            losses = problem.losses(model, cfg.route, problem.terms if logging else active)
             values = {t: float(v.detach()) for t, v in losses.items()}
-            if not all(math.isfinite(v) for v in values.values()):
+            if not all(math.isfinite(values[t]) for t in active):
                 state["skipped"] += 1
                 state["streak"] += 1
                 warnings.warn(f"epoch {epoch}: non-finite loss {values}; update skipped",
@@ -406,13 +541,15 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
                 state["seconds"] += time.perf_counter() - t0
                 continue
             state["streak"] = 0
-            if epoch % cfg.log_every == 0:
+            if logging:
                 log(epoch, values)  # the weights before this epoch's refresh
-            weighting.backward(losses, params, epoch)
+            weighting.backward({t: losses[t] for t in active}, params, epoch)
             opt.step()
             sched.step()
             state["seconds"] += time.perf_counter() - t0
             state["epoch"] += 1
+            if state["epoch"] < cfg.epochs and problem.active(state["epoch"]) != active:
+                end_of_phase(state["epoch"])
             if bar is not None:
                 bar.update()
                 if epoch % cfg.log_every == 0:
@@ -427,17 +564,18 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
         if bar is not None:
             bar.close()
     if not state["diverged"]:
-        with torch.enable_grad():
-            final = {t: float(v.detach()) for t, v in problem.losses(model, cfg.route).items()}
+        end_of_phase(state["epoch"])
+        final = {t: state["phases"][-1][t] for t in problem.terms}
         if all(math.isfinite(v) for v in final.values()):
             log(state["epoch"], final)
     checkpoint()
     rel = problem.rel_l2(model)
     result = {**config, "rel_l2": rel if math.isfinite(rel) else None,
               "diverged": state["diverged"], "skipped": state["skipped"],
-              "seconds": state["seconds"], "weights": dict(weighting.weights)}
+              "seconds": state["seconds"], "weights": dict(weighting.weights),
+              "coefficients": problem.extras(model), "phases": state["phases"]}
     if plot:
-        plot_run(problem, model, state["history"], out, cfg)
+        plot_run(problem, model, state["history"], out, cfg, state["phases"])
     write_json(result_path, result)
     return result
 
@@ -452,20 +590,22 @@ def _pyplot():
     return plt
 
 
-def plot_run(problem: Poisson | Sobolev, model: nn.Module, history: list[dict], out: Path,
-             cfg: PinnConfig) -> None:
+def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
+             cfg: PinnConfig, phases: list[dict] = ()) -> None:
     """``field.png``: exact solution, prediction, |error|; ``history.png``: each term, each
-    weight and the relative L2 error over epochs."""
+    weight, the relative L2 error and any learned coefficient over epochs, with the phase
+    boundaries dotted."""
     plt = _pyplot()
     with torch.no_grad():
-        u = model(problem.grid).reshape(100, 100).numpy()
-    exact = problem.u_grid.reshape(100, 100).numpy()
+        u = model(problem.grid).reshape(problem.shape).numpy()
+    exact = problem.u_grid.reshape(problem.shape).numpy()
     title = f"{problem.title}, {cfg.weighting}, seed {cfg.seed}"
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     for ax, field, name in zip(axes, (exact, u, np.abs(u - exact)),
                                ("exact u", "network u", "|error|")):
-        im = ax.imshow(field.T, origin="lower", extent=problem.extent * 2, cmap="viridis")
-        ax.set(title=name, xlabel="x", ylabel="y")
+        im = ax.imshow(field.T, origin="lower", extent=problem.extent, cmap="viridis",
+                       aspect="auto")
+        ax.set(title=name, xlabel=problem.axes[0], ylabel=problem.axes[1])
         fig.colorbar(im, ax=ax, shrink=0.8)
     fig.suptitle(title)
     fig.tight_layout()
@@ -473,14 +613,21 @@ def plot_run(problem: Poisson | Sobolev, model: nn.Module, history: list[dict], 
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    extras = tuple(problem.extras(model))
+    fig, axes = plt.subplots(1, 3 + bool(extras), figsize=(12 + 4 * bool(extras), 3.4))
     ep = [h["epoch"] for h in history]
     for t in problem.terms:
         axes[0].plot(ep, [h[f"loss/{t}"] for h in history], label=f"L_{t}")
         axes[1].plot(ep, [h[f"weight/{t}"] for h in history], label=f"λ_{t}")
     axes[2].plot(ep, [h["rel_l2"] for h in history], color="k")
-    for ax, name in zip(axes, ("loss terms", "weights", "relative L2 error")):
-        ax.set(yscale="log", xlabel="epoch", title=name)
+    for name in extras:
+        axes[3].plot(ep, [h[name] for h in history], label=name)
+    names = ("loss terms", "weights", "relative L2 error", "coefficients")
+    for ax, name in zip(axes, names):
+        ax.set(yscale="log" if name != "coefficients" else "linear", xlabel="epoch",
+               title=name)
+        for p in phases[:-1]:
+            ax.axvline(p["epoch"], color="0.6", ls=":", lw=0.8)
         if name != "relative L2 error":
             ax.legend(fontsize=7)
     fig.suptitle(title)
@@ -541,6 +688,7 @@ def run_command(args: argparse.Namespace) -> int:
         return 1
     print(f"{name} {cfg.weighting} seed {cfg.seed}: relative L2 "
           f"{result['rel_l2']:.3e} after {cfg.epochs} epochs ({result['seconds']:.0f} s), "
-          f"weights {', '.join(f'{k} {v:.3g}' for k, v in result['weights'].items())}; "
-          f"run in {out}")
+          f"weights {', '.join(f'{k} {v:.3g}' for k, v in result['weights'].items())}"
+          + "".join(f", {k} {v:.4g}" for k, v in result["coefficients"].items())
+          + f"; run in {out}")
     return 0

@@ -19,6 +19,10 @@ Guard: a term whose gradient is zero or non-finite (s_k = 0, mean|g_k| = 0) keep
 and a zero or non-finite reference spread leaves every weight as it is; no weight becomes inf
 or NaN.
 
+Terms may join one after another (sequential training): :meth:`backward` and :meth:`update`
+take the *active* terms only, and an absent term keeps its weight. While the named reference
+is absent, ID takes the active term of largest spread as the reference.
+
 Every update appends ``{"step": s, "<name>": λ, ..., "spread/<name>": s_k, ...}`` to
 :attr:`Weighting.history`. The class works on any multi-term loss: :meth:`backward` takes the
 named terms and the parameters they act on, refreshes the weights when due (one reverse pass
@@ -110,38 +114,38 @@ class Weighting:
 
     # ------------------------------------------------------------------ the rules
     def update(self, step: int, grads: Mapping[str, torch.Tensor | Sequence]) -> dict[str, float]:
-        """Refresh the weights from each term's parameter gradient (a tensor or a list of
-        per-parameter tensors, ``None`` for an unused one); returns the new weights."""
-        missing = sorted(set(self.names) - set(grads))
-        if missing:
-            raise ValueError(f"no gradient for term(s) {missing}")
+        """Refresh the weights from each active term's parameter gradient (a tensor or a list
+        of per-parameter tensors, ``None`` for an unused one); returns the new weights."""
+        unknown = sorted(set(grads) - set(self.names))
+        if unknown:
+            raise ValueError(f"gradient for unknown term(s) {unknown}; terms: {self.names}")
         if not self.adaptive:
             return dict(self.weights)
-        flat = {n: _flat(grads[n]).detach().double() for n in self.names}
+        active = [n for n in self.names if n in grads]
+        flat = {n: _flat(grads[n]).detach().double() for n in active}
         spread = {n: float(g.std(unbiased=False)) if g.numel() else 0.0
                   for n, g in flat.items()}
         usable = {n: math.isfinite(s) and s > 0.0 for n, s in spread.items()}
+        ref = self.reference if self.reference in grads else None
         if self.rule == "inverse-dirichlet":
-            ref = self.reference
             if ref is None:
-                ref = max((n for n in self.names if usable[n]), key=spread.get, default=None)
+                ref = max((n for n in active if usable[n]), key=spread.get, default=None)
             if ref is not None and usable[ref]:
-                for n in self.names:
+                for n in active:
                     if n == self.reference or not usable[n]:
                         continue
                     self._blend(n, spread[ref] / spread[n])
-        else:  # max-avg
-            ref = self.reference
+        elif ref is not None:  # max-avg, while its reference is active
             top = float(flat[ref].abs().max()) if flat[ref].numel() else 0.0
             if math.isfinite(top) and top > 0.0:
-                for n in self.names:
+                for n in active:
                     if n == ref:
                         continue
                     avg = float((self.weights[n] * flat[n]).abs().mean()) if usable[n] else 0.0
                     if math.isfinite(avg) and avg > 0.0:
                         self._blend(n, top / avg)
         self.history.append({"step": int(step), **self.weights,
-                             **{f"spread/{n}": spread[n] for n in self.names}})
+                             **{f"spread/{n}": spread[n] for n in active}})
         return dict(self.weights)
 
     def _blend(self, name: str, target: float) -> None:
@@ -151,8 +155,8 @@ class Weighting:
 
     # ------------------------------------------------------------------ use in training
     def total(self, losses: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Σ_k λ_k L_k with the current weights."""
-        return sum(self.weights[n] * losses[n] for n in self.names)
+        """Σ_k λ_k L_k over the terms in ``losses`` (the active ones), current weights."""
+        return sum(self.weights[n] * losses[n] for n in self.names if n in losses)
 
     def backward(
         self, losses: Mapping[str, torch.Tensor], params: Iterable[torch.Tensor], step: int
@@ -167,16 +171,17 @@ class Weighting:
             total = self.total(losses)
             total.backward()
             return total.detach()
+        active = [n for n in self.names if n in losses]
         per_term = {}
-        for i, n in enumerate(self.names):
-            last = i == len(self.names) - 1
+        for i, n in enumerate(active):
+            last = i == len(active) - 1
             g = torch.autograd.grad(losses[n], params, retain_graph=not last, allow_unused=True)
             per_term[n] = [torch.zeros_like(p) if gi is None else gi for gi, p in zip(g, params)]
         self.update(step, per_term)
         for j, p in enumerate(params):
-            g = sum(self.weights[n] * per_term[n][j] for n in self.names)
+            g = sum(self.weights[n] * per_term[n][j] for n in active)
             p.grad = g if p.grad is None else p.grad + g
-        return self.total({n: losses[n].detach() for n in self.names})
+        return self.total({n: losses[n].detach() for n in active})
 
     def state_dict(self) -> dict:
         return {"rule": self.rule, "weights": dict(self.weights), "history": list(self.history)}

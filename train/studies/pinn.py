@@ -32,6 +32,8 @@ SIZES = {
     # what fits in about an hour on a shared 2-core machine (one process)
     "reduced": {"k": (2, 4, 6), "weightings": WEIGHTINGS[:3], "seeds": 3, "epochs": 1000,
                 "net": {}},
+    # the finding at k = 6 with the authors' whole schedule (about 80 min of one core)
+    "k6": {"k": (6,), "weightings": WEIGHTINGS[:3], "seeds": 3, "epochs": 30001, "net": {}},
     "full": {"k": (1, 2, 3, 4, 5, 6), "weightings": WEIGHTINGS, "seeds": 5, "epochs": 30001,
              "net": {}},
 }
@@ -149,3 +151,98 @@ def report(rows: list[dict], out: Path) -> str:
 
 register_study(Study(name="pinn-poisson", sizes=tuple(SIZES), cells=cells, run_cell=run_cell,
                      report=report))
+
+
+# ----------------------------------------------------------------------------- sequential KS
+#: the ``pinn-ks-inverse`` study (:class:`train.pinn.KSInverse`): weightings × seeds
+KS_SIZES = {
+    "tiny": {"weightings": ("uniform", "inverse-dirichlet"), "seeds": 1, "epochs": 9,
+             "net": {"width": 8, "depth": 2, "collocation": 64, "edge_points": 8,
+                     "log_every": 3, "plot": False}},
+    "quick": {"weightings": WEIGHTINGS[:3], "seeds": 1, "epochs": 3000, "net": {}},
+    "full": {"weightings": WEIGHTINGS[:3], "seeds": 3, "epochs": 6000, "net": {}},
+}
+
+
+def ks_cells(size: str, seeds: int | None) -> list[dict]:
+    spec = KS_SIZES[size]
+    n = spec["seeds"] if seeds is None else seeds
+    return [{"id": f"{SHORT[w]}-s{s}", "problem": "ks-inverse", "weighting": w, "seed": s,
+             "epochs": spec["epochs"], **spec["net"]}
+            for s in range(n) for w in spec["weightings"]]
+
+
+def ks_run_cell(cell: dict, run_dir: Path) -> dict:
+    torch.set_num_threads(1)
+    keys = {k: v for k, v in cell.items() if k not in ("id", "plot")}
+    result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
+                       plot=cell.get("plot", True))
+    phases = result["phases"]
+    return {"rel_l2": result["rel_l2"], "diverged": result["diverged"],
+            "seconds": result["seconds"], **result["coefficients"],
+            # the data misfit when each phase ends: did the first objective survive the others?
+            "data_by_phase": [p["data"] for p in phases], "res": phases[-1]["res"] if phases
+            else None, "periodic": phases[-1]["periodic"] if phases else None}
+
+
+def ks_table(rows: list[dict]) -> str:
+    """Per weighting, median over seeds [min, max]: the data loss after phase 1 (data only)
+    and at the end, their ratio (> 1: forgotten), the coefficients' errors and the relative L2
+    of u."""
+    def cell(values: list[float]) -> str:
+        return _fmt([v if v is not None else math.inf for v in values]).split(" n=")[0]
+
+    head = ["weighting", "n", "data after 1", "data at end", "end / after 1", "|α-1|", "|β-1|",
+            "rel L2 of u"]
+    body = []
+    for w in WEIGHTINGS:
+        mine = [r for r in rows if r["weighting"] == w and len(r.get("data_by_phase", [])) == 3]
+        if not mine:
+            continue
+        d1 = [r["data_by_phase"][0] for r in mine]
+        d3 = [r["data_by_phase"][-1] for r in mine]
+        body.append([w, str(len(mine)), cell(d1), cell(d3),
+                     cell([b / a for a, b in zip(d1, d3)]),
+                     cell([abs(r["alpha"] - 1) for r in mine]),
+                     cell([abs(r["beta"] - 1) for r in mine]), cell([_err(r) for r in mine])])
+    widths = [max(len(x[i]) for x in [head, *body]) for i in range(len(head))]
+    epochs = sorted({r["epochs"] for r in rows})
+    lines = [f"KS sequential inverse problem (data, + periodic, + residual; "
+             f"{', '.join(map(str, epochs))} epochs): median [min, max] over seeds"]
+    lines += ["  ".join(c.ljust(wd) for c, wd in zip(x, widths)) for x in [head, *body]]
+    return "\n".join(lines)
+
+
+def ks_plot(rows: list[dict], path: Path) -> None:
+    """The data loss at the end of each phase, one line per run, coloured by weighting."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colors = {"uniform": "tab:red", "inverse-dirichlet": "tab:blue", "max-avg": "tab:orange"}
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for w, c in colors.items():
+        for i, r in enumerate(r for r in rows if r["weighting"] == w):
+            d = r.get("data_by_phase") or []
+            ax.plot(range(1, len(d) + 1), d, color=c, marker="o", alpha=0.7,
+                    label=w if i == 0 else None)
+    ax.set(yscale="log", xticks=[1, 2, 3], xticklabels=["data", "+ periodic", "+ residual"],
+           xlabel="end of phase", ylabel="data loss (MSE)",
+           title="KS inverse: is the data fit forgotten?")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def ks_report(rows: list[dict], out: Path) -> str:
+    text = ks_table(rows)
+    write_text(Path(out) / "table.txt", text + "\n")
+    ks_plot(rows, Path(out) / "pinn-ks-inverse.png")
+    return text
+
+
+register_study(Study(name="pinn-ks-inverse", sizes=tuple(KS_SIZES), cells=ks_cells,
+                     run_cell=ks_run_cell, report=ks_report))
