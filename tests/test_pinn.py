@@ -70,6 +70,28 @@ def test_run_writes_history_plots_and_refuses_to_overwrite(tmp_path):
         train_run(_cfg(weighting="id", epochs=3), out, resume=True, progress=False)
 
 
+def test_ctrl_c_inside_an_update_resumes_without_repeating_it(tmp_path, monkeypatch):
+    import os
+    import signal
+
+    straight = train_run(_cfg(weighting="id"), tmp_path / "a", progress=False, plot=False)
+    real, calls = torch.optim.lr_scheduler.MultiStepLR.step, []
+
+    def step(self, *args, **kwargs):
+        real(self, *args, **kwargs)
+        calls.append(1)
+        if len(calls) == 7:  # after the parameter update, before the epoch is counted
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(torch.optim.lr_scheduler.MultiStepLR, "step", step)
+    with pytest.raises(KeyboardInterrupt):
+        train_run(_cfg(weighting="id"), tmp_path / "b", progress=False, plot=False)
+    monkeypatch.setattr(torch.optim.lr_scheduler.MultiStepLR, "step", real)
+    again = train_run(_cfg(weighting="id"), tmp_path / "b", resume=True, progress=False,
+                      plot=False)
+    assert again["rel_l2"] == straight["rel_l2"] and again["weights"] == straight["weights"]
+
+
 def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     straight = train_run(_cfg(weighting="maxavg"), tmp_path / "a", progress=False, plot=False)
     real, calls = pinn.Poisson.losses, []

@@ -52,7 +52,14 @@ from adjointsim.solvers.poisson import Poisson2D
 from adjointsim.solvers.schrodinger import SchrodingerCN
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
-from .atomic import RunExists, atomic_path, finished_result, write_json, write_text
+from .atomic import (
+    RunExists,
+    atomic_path,
+    finished_result,
+    uninterrupted,
+    write_json,
+    write_text,
+)
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
@@ -416,19 +423,19 @@ def _loop(cfg, problem, settings, model, opt, gen, state, evaluate, checkpoint, 
             evaluate()
             if bar is not None:
                 bar.set_postfix(test=f"{state['history'][-1]['test_loss']:.3g}")
-        x, c, t = problem.sample(gen, int(settings["batch"]))
-        t0 = time.process_time()
-        try:
-            value = _update(problem, model, opt, (x, c, t))
-        except (FloatingPointError, NonFiniteStateError, NonFiniteInputError):
-            # The previous update sent the network where the physics blows up: the run ends.
-            state["diverged"] = True
-            value = math.inf
-        dt = time.process_time() - t0
-        state["wall"] += dt
-        state["updates"] += 1
-        if math.isfinite(value):
-            state["losses"].append(value)
+        with uninterrupted():
+            x, c, t = problem.sample(gen, int(settings["batch"]))
+            t0 = time.process_time()
+            try:
+                value = _update(problem, model, opt, (x, c, t))
+            except (FloatingPointError, NonFiniteStateError, NonFiniteInputError):
+                # The previous update sent the network where the physics blows up: it ends.
+                state["diverged"] = True
+                value = math.inf
+            state["wall"] += time.process_time() - t0
+            state["updates"] += 1
+            if math.isfinite(value):
+                state["losses"].append(value)
         if bar is not None:
             bar.update(round(state["wall"], 1) - bar.n)
         if time.monotonic() - last_save > 30.0:

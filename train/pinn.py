@@ -41,7 +41,14 @@ from torch import nn
 from nets.mlp import MLP
 from nets.taylor import jets, laplacian
 
-from .atomic import RunExists, atomic_path, finished_result, write_json, write_text
+from .atomic import (
+    RunExists,
+    atomic_path,
+    finished_result,
+    uninterrupted,
+    write_json,
+    write_text,
+)
 from .weighting import Weighting, canonical_rule
 
 PROBLEMS = ("poisson", "sobolev", "ks-inverse")
@@ -543,11 +550,12 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             state["streak"] = 0
             if logging:
                 log(epoch, values)  # the weights before this epoch's refresh
-            weighting.backward({t: losses[t] for t in active}, params, epoch)
-            opt.step()
-            sched.step()
-            state["seconds"] += time.perf_counter() - t0
-            state["epoch"] += 1
+            with uninterrupted():
+                weighting.backward({t: losses[t] for t in active}, params, epoch)
+                opt.step()
+                sched.step()
+                state["seconds"] += time.perf_counter() - t0
+                state["epoch"] += 1
             if state["epoch"] < cfg.epochs and problem.active(state["epoch"]) != active:
                 end_of_phase(state["epoch"])
             if bar is not None:
