@@ -111,19 +111,40 @@ def _verdict(rows: list[dict], k: int) -> str:
     return f"  k={k}: " + "; ".join(parts) if parts else ""
 
 
-def plot(rows: list[dict], path: Path) -> None:
-    """Relative L2 against k: one marker per run, the median per weighting as a line, the
-    authors' figures dashed."""
+COLORS = {"uniform": "tab:red", "inverse-dirichlet": "tab:blue", "max-avg": "tab:orange",
+          "fixed": "tab:green"}
+
+
+def _axes():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colors = {"uniform": "tab:red", "inverse-dirichlet": "tab:blue", "max-avg": "tab:orange",
-              "fixed": "tab:green"}
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    return plt.subplots(figsize=(5.5, 4))
+
+
+def _save(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def _report(text: str, out: Path, plot_fn, rows: list[dict], name: str) -> str:
+    write_text(Path(out) / "table.txt", text + "\n")
+    plot_fn(rows, Path(out) / f"{name}.png")
+    return text
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Relative L2 against k: one marker per run, the median per weighting as a line, the
+    authors' figures dashed."""
+    fig, ax = _axes()
     ks = sorted({r["k"] for r in rows})
-    for w, c in colors.items():
+    for w, c in COLORS.items():
         mine = [r for r in rows if r["weighting"] == w and math.isfinite(_err(r))]
         if not mine:
             continue
@@ -136,17 +157,11 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set(yscale="log", xticks=ks, xlabel="k (ω = kπ)", ylabel="relative L2 error",
            title="Poisson PINN (dashed: authors, 30k epochs)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def report(rows: list[dict], out: Path) -> str:
-    text = table(rows)
-    write_text(Path(out) / "table.txt", text + "\n")
-    plot(rows, Path(out) / "pinn-poisson.png")
-    return text
+    return _report(table(rows), out, plot, rows, "pinn-poisson")
 
 
 register_study(Study(name="pinn-poisson", sizes=tuple(SIZES), cells=cells, run_cell=run_cell,
@@ -215,14 +230,8 @@ def ks_table(rows: list[dict]) -> str:
 
 def ks_plot(rows: list[dict], path: Path) -> None:
     """The data loss at the end of each phase, one line per run, coloured by weighting."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    colors = {"uniform": "tab:red", "inverse-dirichlet": "tab:blue", "max-avg": "tab:orange"}
-    fig, ax = plt.subplots(figsize=(5.5, 4))
-    for w, c in colors.items():
+    fig, ax = _axes()
+    for w, c in COLORS.items():
         for i, r in enumerate(r for r in rows if r["weighting"] == w):
             d = r.get("data_by_phase") or []
             ax.plot(range(1, len(d) + 1), d, color=c, marker="o", alpha=0.7,
@@ -231,17 +240,11 @@ def ks_plot(rows: list[dict], path: Path) -> None:
            xlabel="end of phase", ylabel="data loss (MSE)",
            title="KS inverse: is the data fit forgotten?")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def ks_report(rows: list[dict], out: Path) -> str:
-    text = ks_table(rows)
-    write_text(Path(out) / "table.txt", text + "\n")
-    ks_plot(rows, Path(out) / "pinn-ks-inverse.png")
-    return text
+    return _report(ks_table(rows), out, ks_plot, rows, "pinn-ks-inverse")
 
 
 register_study(Study(name="pinn-ks-inverse", sizes=tuple(KS_SIZES), cells=ks_cells,
