@@ -14,7 +14,9 @@ hardest level: 4 poles, control weight 0.001, target 5; the paper's networks, ba
   1e-10 (relative, float64).
 
 Printed: ms per update and the ratios C/R (target ≤ 1.3) and torch/R (> 1 means the
-hand-written adjoints win).
+hand-written adjoints win). Then, per task, what C adds: the network's forward + backward on
+all steps' inputs stacked (C's one extra pass) against the same rows in per-step passes at the
+batch size (as R runs them).
 """
 
 from __future__ import annotations
@@ -154,6 +156,28 @@ def agreement(task, net, x0, step) -> float:
     return float((a - b).norm() / b.norm())
 
 
+def network_passes(task, net, x0, repeats: int) -> tuple[float, float]:
+    """ms of one stacked network forward + backward over steps × batch rows, and of the same
+    rows as ``steps`` passes of the batch size."""
+    params = list(net.parameters())
+    rows = torch.randn(task.steps * x0.shape[0], *x0.shape[1:], dtype=x0.dtype)
+
+    def passes(size):
+        for i in range(0, rows.shape[0], size):
+            torch.autograd.grad(net(rows[i:i + size]).sum(), params)
+
+    out = []
+    for size in (rows.shape[0], x0.shape[0]):
+        passes(size)
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            passes(size)
+            times.append(time.perf_counter() - t)
+        out.append(1e3 * float(np.median(times)))
+    return out[0], out[1]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=15)
@@ -168,6 +192,7 @@ def main() -> None:
           f"(median of {args.repeats})")
     print(f"{'task':<9} {'steps':>5} {'R':>8} {'C':>8} {'torch':>8} {'C/R':>6} {'torch/R':>8} "
           f"{'agree':>8}")
+    passes = {}
     for name in args.tasks.split(","):
         task, net, x0 = setup(name, args.batch)
         step = TORCH_STEPS[name](task.solver)
@@ -190,6 +215,10 @@ def main() -> None:
         med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
         print(f"{name:<9} {task.steps:>5} {med['R']:8.1f} {med['C']:8.1f} {med['torch']:8.1f} "
               f"{med['C'] / med['R']:6.2f} {med['torch'] / med['R']:8.2f} {err:8.1e}", flush=True)
+        passes[name] = network_passes(task, net, x0, args.repeats)
+    for name, (stacked, per_step) in passes.items():
+        print(f"{name}: network forward + backward, all steps stacked (C's extra pass) "
+              f"{stacked:.1f} ms; the same rows in per-step passes {per_step:.1f} ms")
 
 
 if __name__ == "__main__":
