@@ -4,7 +4,8 @@
 
 Prints the median time of one HIG update on the problem's HIG batch, split into the Jacobian's
 network part (per-sample VJPs through the MLP) and physics part (the solver's batched adjoint,
-one call for all b·d_y rows), the SVD (QR + small SVD) and the apply, with the physics share
+one call for all b·d_y rows), the decomposition (``svd``: the Gram eigendecomposition or QR + small
+SVD, as ``train.hig`` chooses) and the apply, with the physics share
 (target ≤ 25% on the oscillators). Then J = ∂y/∂θ from ``HalfInverseGradients.jacobian``
 against ``torch.func.jacrev`` through the same RK4 simulator written in plain torch
 (checked equal to 1e-10 in float64; target ≥ 5x). Each repetition runs every candidate once,

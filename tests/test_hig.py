@@ -62,8 +62,9 @@ def test_jacobian_matches_central_finite_differences():
     assert err < 1e-8, err
 
 
+@pytest.mark.parametrize("decomposition", ["svd", "gram"])
 @pytest.mark.parametrize("kappa", [0.5, 1.0])
-def test_hig_and_gn_steps_match_a_dense_numpy_svd(kappa):
+def test_hig_and_gn_steps_match_a_dense_numpy_svd(kappa, decomposition):
     stepper, physics, model, x = small_problem(1)
     target = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
 
@@ -92,7 +93,8 @@ def test_hig_and_gn_steps_match_a_dense_numpy_svd(kappa):
     expected = -lr * vt[keep].T @ (s[keep] ** -kappa * (u[:, keep].T @ g))
 
     before = flat_params(model)
-    opt = HalfInverseGradients(model, physics, loss, lr=lr, kappa=kappa, tau=tau)
+    opt = HalfInverseGradients(model, physics, loss, lr=lr, kappa=kappa, tau=tau,
+                               decomposition=decomposition)
     value = opt.step(x, x, target)
     assert value == pytest.approx(np.mean(((y - target.numpy().reshape(-1)) ** 2)
                                           .reshape(3, 4).sum(1)), rel=1e-12)
@@ -247,3 +249,32 @@ def test_quick_study_reproduces_hig_below_adam_on_the_linear_chain(tmp_path):
     chain = {(r["optimizer"], r["seed"]): r["test_loss"] for r in rows if r["problem"] == "chain"}
     for seed in range(3):
         assert chain[("hig", seed)] * 100 < chain[("adam", seed)]
+
+
+def test_auto_takes_the_gram_route_only_where_tau_resolves_the_dropped_directions():
+    _, physics, model, _ = small_problem()
+    rng = np.random.default_rng(3)
+    # a wide J with singular values from 1 down to 1e-9
+    u = np.linalg.qr(rng.standard_normal((12, 12)))[0]
+    v = np.linalg.qr(rng.standard_normal((40, 12)))[0]
+    s = np.logspace(0, -9, 12)
+    jac, g = torch.from_numpy(u * s @ v.T), torch.from_numpy(rng.standard_normal(12))
+
+    def direction(tau, decomposition="auto", dtype=torch.float64):
+        opt = HalfInverseGradients(model, physics, lambda y, t: y.sum(1), tau=tau,
+                                   decomposition=decomposition)
+        return opt, opt.direction(jac.to(dtype), g.to(dtype)).double().numpy()
+
+    for tau in (1e-4, 1e-10):
+        keep = s > tau
+        exact = v[:, keep] @ (s[keep] ** -0.5 * (u[:, keep].T @ g.numpy()))
+        opt, got = direction(tau)
+        assert opt._gram(torch.float64) == (tau == 1e-4)
+        # the SVD route resolves σ = 1e-9 to about ε·cond(J) = 1e-7 relative
+        np.testing.assert_allclose(got, exact, rtol=1e-8 if tau == 1e-4 else 1e-5)
+    assert not direction(1e-4)[0]._gram(torch.float32)  # 1e-8 is below float32's resolution
+    zero = HalfInverseGradients(model, physics, lambda y, t: y.sum(1), decomposition="gram")
+    assert not zero.direction(torch.zeros(3, 5, dtype=torch.float64),
+                              torch.ones(3, dtype=torch.float64)).any()
+    with pytest.raises(ValueError, match="unknown decomposition 'qr'; choose from auto, svd"):
+        HalfInverseGradients(model, physics, lambda y, t: y.sum(1), decomposition="qr")

@@ -28,6 +28,16 @@ Cost (``python benchmarks/hig.py``, oscillators, batch 128, J 512 × 2956, float
 shared machine): one update 1.80 s = network 3.0% + physics 5.5% + SVD 88.8% + apply 0.0%;
 J alone in 0.19 s, 296x faster than ``torch.func.jacrev`` through the same RK4 in plain torch.
 The SVD of the wide J is taken as Jᵀ = QR followed by the SVD of the small R.
+
+The decomposition (``decomposition=``): ``"svd"`` is the one above, exact to round-off.
+``"gram"`` takes the eigendecomposition J Jᵀ = U Λ Uᵀ (σ² = λ) of the small Gram matrix and
+applies V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g: 2.7–4× faster (oscillators 0.142 → 0.053 s,
+quantum 0.286 → 0.081 s, Poisson 0.278 → 0.066 s on one thread), but λ carries an absolute
+error of about ε λ_max, so singular values near τ σ_max lose about ε/τ² of relative accuracy:
+against the SVD route the update differs by 7.5e-5 (oscillators, τ = 1e-6), 7.1e-7 (quantum,
+τ = 1e-5) and 3.8e-12 (Poisson, well conditioned), relative. ``"auto"`` (the default) takes
+``"gram"`` for a wide J whenever τ² ≥ 10³ ε of its dtype (τ ≥ 4.7e-7 in float64), so that the
+dropped directions are resolved; otherwise (the linear chain's τ = 1e-10, float32) the SVD.
 """
 
 from __future__ import annotations
@@ -44,6 +54,9 @@ from adjointsim import Stepper
 from . import bridge
 
 Loss = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+DECOMPOSITIONS = ("auto", "svd", "gram")
+#: "auto" takes the Gram route when τ² is at least this many ε of J's dtype
+GRAM_MIN_TAU2_EPS = 1e3
 
 
 class SolverPhysics:
@@ -148,12 +161,17 @@ class HalfInverseGradients:
         kappa: float = 0.5,
         tau: float = 1e-6,
         max_jacobian_mb: float = 1024.0,
+        decomposition: str = "auto",
     ):
         for key, value in (("lr", lr), ("tau", tau), ("max_jacobian_mb", max_jacobian_mb)):
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"HIG: {key} must be a finite number ≥ 0, not {value!r}")
         if not (isinstance(kappa, int | float) and np.isfinite(kappa)):
             raise ValueError(f"HIG: kappa must be a finite number (0.5 HIG, 1 GN), not {kappa!r}")
+        if decomposition not in DECOMPOSITIONS:
+            raise ValueError(f"HIG: unknown decomposition {decomposition!r}; choose from "
+                             f"{', '.join(DECOMPOSITIONS)}")
+        self.decomposition = decomposition
         self.model, self.physics, self.loss = model, physics, loss
         self.lr, self.kappa, self.tau = float(lr), float(kappa), float(tau)
         self.max_jacobian_mb = float(max_jacobian_mb)
@@ -207,6 +225,14 @@ class HalfInverseGradients:
                 "lower the learning rate, or resume from an earlier checkpoint"
             )
         rows, cols = jac.shape
+        if rows <= cols and self._gram(jac.dtype):
+            # J Jᵀ = U Λ Uᵀ, eigenvalues ascending; V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g
+            lam, u = torch.linalg.eigh(jac @ jac.T)
+            s = lam.clamp(min=0.0).sqrt()
+            if s.numel() == 0 or s[-1] == 0:
+                return torch.zeros(cols, dtype=jac.dtype)
+            keep = s > self.tau * s[-1]
+            return jac.T @ (u[:, keep] @ (s[keep] ** (-self.kappa - 1.0) * (u[:, keep].T @ g)))
         if rows <= cols:
             # J is wide (b·d_y < |θ|): Jᵀ = QR, then the small SVD Rᵀ = U Σ Wᵀ gives
             # J = U Σ (QW)ᵀ. The same singular values to round-off as a direct SVD, measured
@@ -220,6 +246,11 @@ class HalfInverseGradients:
         keep = s > self.tau * s[0]
         delta = wh[keep].T @ (s[keep] ** (-self.kappa) * (u[:, keep].T @ g))
         return q @ delta if rows <= cols else delta
+
+    def _gram(self, dtype: torch.dtype) -> bool:
+        if self.decomposition != "auto":
+            return self.decomposition == "gram"
+        return self.tau**2 >= GRAM_MIN_TAU2_EPS * torch.finfo(dtype).eps
 
     def step(
         self, x: torch.Tensor, context: torch.Tensor, target: torch.Tensor
