@@ -1,6 +1,7 @@
 """Physics-informed training with loss balancing (Maddu et al., MLST 2022): the multi-scale
-Poisson problem and Sobolev training (:class:`Sobolev`), the training loop, history, plots and
-the ``adjointsim pinn`` command.
+Poisson problem, Sobolev training (:class:`Sobolev`), a sequential inverse problem on this
+project's KS solver (:class:`KSInverse`), the training loop, history, plots and the
+``adjointsim pinn`` command.
 
 Poisson, as in the note: Δu = −2ω² cos(ωx) sin(ωy) on [0, 1]², ω = kπ, k = 1..6, exact
 solution u = cos(ωx) sin(ωy). L_res = mean of the squared residual over 2500 collocation points
@@ -556,8 +557,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
                 sched.step()
                 state["seconds"] += time.perf_counter() - t0
                 state["epoch"] += 1
-            if state["epoch"] < cfg.epochs and problem.active(state["epoch"]) != active:
-                end_of_phase(state["epoch"])
+                if state["epoch"] < cfg.epochs and problem.active(state["epoch"]) != active:
+                    end_of_phase(state["epoch"])
             if bar is not None:
                 bar.update()
                 if epoch % cfg.log_every == 0:
