@@ -22,7 +22,9 @@ parameter gradient of any loss of these (no nested autograd).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from numba import njit
 from torch import nn
 
 from .mlp import MLP, Sin
@@ -146,6 +148,61 @@ def _sigma3(layer: nn.Module, z: torch.Tensor) -> list[torch.Tensor]:
     return [sn, cs, -sn, -cs]
 
 
+# The forward Laplacian's tanh layers, fused: one pass over the (N, width) elements instead of
+# a dozen torch element-wise ops, each a trip through memory (measured 3.6x less time per layer
+# at N = 2500, width 50, beside torch's tanh, which stays in torch).
+@njit(cache=True)
+def _tanh_layer(t, z1, z2, y1, y2, s1, s2, s3, q):
+    """From t = tanh(z0): σ', σ'', σ‴ (s1, s2, s3), q = Σ_d z1², y1 = σ' z1 and
+    y2 = σ'' q + σ' z2 (z2 empty: zero)."""
+    n, dirs, width = z1.shape
+    for p in range(n):
+        for j in range(width):
+            tt = t[p, j]
+            d1 = 1.0 - tt * tt
+            s1[p, j] = d1
+            s2[p, j] = -2.0 * tt * d1
+            s3[p, j] = d1 * (6.0 * tt * tt - 2.0)
+            q[p, j] = 0.0
+        for d in range(dirs):
+            for j in range(width):
+                v = z1[p, d, j]
+                q[p, j] += v * v
+                y1[p, d, j] = s1[p, j] * v
+        for j in range(width):
+            y2[p, j] = s2[p, j] * q[p, j]
+            if z2.shape[0] > 0:
+                y2[p, j] += s1[p, j] * z2[p, j]
+
+
+@njit(cache=True)
+def _tanh_layer_adjoint(s1, s2, s3, q, z1, z2, g0, g1, g2, zb0, zb1, zb2):
+    """The reverse of :func:`_tanh_layer` (see :class:`_ForwardLaplacian`; g1, z2 empty:
+    zero)."""
+    n, dirs, width = z1.shape
+    for p in range(n):
+        for j in range(width):
+            zb2[p, j] = s1[p, j] * g2[p, j]
+            c = s3[p, j] * q[p, j]
+            if z2.shape[0] > 0:
+                c += s2[p, j] * z2[p, j]
+            zb0[p, j] = c * g2[p, j] + s1[p, j] * g0[p, j]
+        for d in range(dirs):
+            for j in range(width):
+                v = 2.0 * s2[p, j] * g2[p, j] * z1[p, d, j]
+                if g1.shape[0] > 0:
+                    v += s1[p, j] * g1[p, d, j]
+                    zb0[p, j] += s2[p, j] * g1[p, d, j] * z1[p, d, j]
+                zb1[p, d, j] = v
+
+
+def _np(t, like):
+    """A contiguous array view of ``t``, or an empty one of ``like``'s dtype for None."""
+    if t is None:
+        return np.empty((0,) * like.ndim, dtype=like.numpy().dtype)
+    return t.contiguous().numpy()
+
+
 class _ForwardLaplacian(torch.autograd.Function):
     """(u, Σ_d u^(2)_d) of a Linear/activation stack with a hand-written reverse pass for the
     parameters. Per hidden layer, with q = Σ_d z1², the forward is
@@ -163,13 +220,22 @@ class _ForwardLaplacian(torch.autograd.Function):
             z0 = torch.addmm(b, a0, W.T)
             z1 = a1 @ W.T  # (D, w) at the first layer, then (N, D, w)
             z2 = None if a2 is None else a2 @ W.T
-            s0, s1, s2, s3 = _sigma3(act, z0)
-            q = (z1 * z1).sum(dim=-2)
-            y2 = s2 * q
-            if z2 is not None:
-                y2.addcmul_(s1, z2)
-            saved.append((a0, a1, a2, z1, z2, q, s1, s2, s3))
-            a0, a1, a2 = s0, s1.unsqueeze(-2) * z1, y2
+            if isinstance(act, nn.Tanh):
+                z1 = z1.expand(z0.shape[0], *z1.shape[-2:]).contiguous()
+                s0 = torch.tanh(z0)
+                s1, s2, s3, q, y2 = (torch.empty_like(z0) for _ in range(5))
+                y1 = torch.empty_like(z1)
+                _tanh_layer(s0.numpy(), z1.numpy(), _np(z2, z0), y1.numpy(), y2.numpy(),
+                            s1.numpy(), s2.numpy(), s3.numpy(), q.numpy())
+            else:
+                s0, s1, s2, s3 = _sigma3(act, z0)
+                q = (z1 * z1).sum(dim=-2)
+                y2 = s2 * q
+                if z2 is not None:
+                    y2.addcmul_(s1, z2)
+                y1 = s1.unsqueeze(-2) * z1
+            saved.append((a0, a1, a2, z1, z2, q, s1, s2, s3, act))
+            a0, a1, a2 = s0, y1, y2
         W, b = weights[-1], biases[-1]
         u = torch.addmm(b, a0, W.T)
         lap = a2 @ W.T if a2 is not None else torch.zeros_like(u)
@@ -186,17 +252,24 @@ class _ForwardLaplacian(torch.autograd.Function):
         grads = [gu.T @ a0 + (gl.T @ a2 if a2 is not None else 0.0), gu.sum(dim=0)]
         g0, g1, g2 = gu @ W, None, gl @ W
         for i in range(len(ctx.saved) - 1, -1, -1):
-            a0, a1, a2, z1, z2, q, s1, s2, s3 = ctx.saved[i]
+            a0, a1, a2, z1, z2, q, s1, s2, s3, act = ctx.saved[i]
             W = weights[i]
-            zb2 = s1 * g2
-            zb1 = (2.0 * s2 * g2).unsqueeze(-2) * z1
-            zb0 = s3 * q
-            if z2 is not None:
-                zb0.addcmul_(s2, z2)
-            zb0.mul_(g2).addcmul_(s1, g0)
-            if g1 is not None:
-                zb1.addcmul_(s1.unsqueeze(-2), g1)
-                zb0.addcmul_(s2, (g1 * z1).sum(dim=-2))
+            if isinstance(act, nn.Tanh):
+                zb0, zb2 = torch.empty_like(s1), torch.empty_like(s1)
+                zb1 = torch.empty_like(z1)
+                _tanh_layer_adjoint(s1.numpy(), s2.numpy(), s3.numpy(), q.numpy(), z1.numpy(),
+                                    _np(z2, s1), _np(g0, s1), _np(g1, z1), _np(g2, s1),
+                                    zb0.numpy(), zb1.numpy(), zb2.numpy())
+            else:
+                zb2 = s1 * g2
+                zb1 = (2.0 * s2 * g2).unsqueeze(-2) * z1
+                zb0 = s3 * q
+                if z2 is not None:
+                    zb0.addcmul_(s2, z2)
+                zb0.mul_(g2).addcmul_(s1, g0)
+                if g1 is not None:
+                    zb1.addcmul_(s1.unsqueeze(-2), g1)
+                    zb0.addcmul_(s2, (g1 * z1).sum(dim=-2))
             if a1.ndim == 2:  # first layer: the directions are shared by every point
                 gW = zb0.T @ a0 + zb1.sum(dim=0).T @ a1
             else:

@@ -86,3 +86,19 @@ def test_bad_input_is_named():
         jets(MLP(2, 1, 4, 1), torch.zeros(3, 2), 1, torch.zeros(2, 3))
     with pytest.raises(ValueError, match="points, coordinates"):
         jets(MLP(2, 1, 4, 1), torch.zeros(3), 1)
+
+
+def test_fused_tanh_layers_in_float32_match_float64():
+    """The numba tanh layers compile per dtype: float32 agrees with float64 to its precision,
+    values and parameter gradient."""
+    torch.manual_seed(1)
+    model = MLP(2, 1, 16, 3, "tanh").double()
+    x = torch.randn(50, 2, dtype=torch.float64)
+    out = {}
+    for dtype in (torch.float64, torch.float32):
+        m = model.to(dtype)
+        u, lap = laplacian(m, x.to(dtype))
+        grads = torch.autograd.grad((lap**2).mean() + u.mean(), list(m.parameters()))
+        out[dtype] = [t.double() for t in (u, lap, *grads)]
+    for a, b in zip(out[torch.float32], out[torch.float64]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * (1 + float(b.abs().max())))
