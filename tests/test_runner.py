@@ -41,9 +41,11 @@ def test_local_cluster_retries_reports_failures_and_reruns_nothing(tmp_path, mon
     assert "1 cell(s) failed, 5 finished" in err
     rows = json.loads((out / "rows.json").read_text())
     assert [r["id"] for r in rows] == ["ok-0", "ok-1", "ok-2", "ok-3", "dies"]
-    # Two worker processes (not this one), one torch thread each, every row file written.
+    # Worker processes (not this one), one torch thread each, every row file written: the two
+    # started, and the nanny's replacement for the one the "dies" cell kills, which may take
+    # cells too when the machine is slow.
     pids = {r["pid"] for r in rows}
-    assert len(pids) == 2 and os.getpid() not in pids
+    assert len(pids) in (2, 3) and os.getpid() not in pids
     assert all(r["threads"] == 1 for r in rows)
     assert all(json.loads((out / r["id"] / "row.json").read_text()) == r for r in rows)
     assert not (out / "raises" / "row.json").exists()
