@@ -273,6 +273,11 @@ def test_auto_takes_the_gram_route_only_where_tau_resolves_the_dropped_direction
         # the SVD route resolves σ = 1e-9 to about ε·cond(J) = 1e-7 relative
         np.testing.assert_allclose(got, exact, rtol=1e-8 if tau == 1e-4 else 1e-5)
     assert not direction(1e-4)[0]._gram(torch.float32)  # 1e-8 is below float32's resolution
+    # forced with τ = 0, the Gram route still drops what is round-off (σ < √(12 ε) ≈ 5e-8)
+    # instead of dividing by it; the kept σ = 2.8e-7 is resolved to about ε/σ² = 3e-3
+    keep = s > 1e-7
+    exact = v[:, keep] @ (s[keep] ** -0.5 * (u[:, keep].T @ g.numpy()))
+    np.testing.assert_allclose(direction(0.0, "gram")[1], exact, rtol=2e-2)
     zero = HalfInverseGradients(model, physics, lambda y, t: y.sum(1), decomposition="gram")
     assert not zero.direction(torch.zeros(3, 5, dtype=torch.float64),
                               torch.ones(3, dtype=torch.float64)).any()

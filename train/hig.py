@@ -39,6 +39,8 @@ against the SVD route the update differs by 7.5e-5 (oscillators, τ = 1e-6), 7.1
 τ = 1e-5) and 3.8e-12 (Poisson, well conditioned), relative. ``"auto"`` (the default) takes
 ``"gram"`` for a wide J whenever τ² ≥ 10³ ε of its dtype (τ ≥ 4.7e-7 in float64), so that the
 dropped directions are resolved; otherwise (the linear chain's τ = 1e-10, float32) the SVD.
+The Gram route never keeps a singular value below √(rows · ε) σ_max (round-off in λ), even
+when asked to by a smaller τ.
 """
 
 from __future__ import annotations
@@ -232,7 +234,9 @@ class HalfInverseGradients:
             s = lam.clamp(min=0.0).sqrt()
             if s.numel() == 0 or s[-1] == 0:
                 return torch.zeros(cols, dtype=jac.dtype)
-            keep = s > self.tau * s[-1]
+            # below √(rows·ε) σ_max an eigenvalue is round-off, whatever τ says
+            floor = max(self.tau, (rows * torch.finfo(jac.dtype).eps) ** 0.5)
+            keep = s > floor * s[-1]
             return jac.T @ (u[:, keep] @ (s[keep] ** (-self.kappa - 1.0) * (u[:, keep].T @ g)))
         if rows <= cols:
             # J is wide (b·d_y < |θ|): Jᵀ = QR, then the small SVD Rᵀ = U Σ Wᵀ gives
