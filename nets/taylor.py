@@ -196,7 +196,7 @@ def _tanh_layer_adjoint(s1, s2, s3, q, z1, z2, g0, g1, g2, zb0, zb1, zb2):
                 zb1[p, d, j] = v
 
 
-def _np(t, like):
+def _np(t: torch.Tensor | None, like: torch.Tensor) -> np.ndarray:
     """A contiguous array view of ``t``, or an empty one of ``like``'s dtype for None."""
     if t is None:
         return np.empty((0,) * like.ndim, dtype=like.numpy().dtype)

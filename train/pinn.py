@@ -169,7 +169,9 @@ class Standardized(nn.Module):
 
 class Problem:
     """What the training loop asks of a problem; the defaults fit a problem whose terms are
-    all active from the start, with no physical coefficient to learn."""
+    all active from the start, with no physical coefficient to learn. Each problem also has
+    ``model()`` and ``losses(model, route, terms)``, the named loss terms; a problem whose
+    terms join one after another computes only those in ``terms`` (all when empty)."""
 
     terms: tuple[str, ...] = ()
     reference = ""

@@ -32,7 +32,7 @@ SIZES = {
     # what fits in about an hour on a shared 2-core machine (one process)
     "reduced": {"k": (2, 4, 6), "weightings": WEIGHTINGS[:3], "seeds": 3, "epochs": 1000,
                 "net": {}},
-    # the finding at k = 6 with the authors' whole schedule (about 80 min of one core)
+    # the finding at k = 6 with the authors' whole schedule (about 90 min of one core)
     "k6": {"k": (6,), "weightings": WEIGHTINGS[:3], "seeds": 3, "epochs": 30001, "net": {}},
     "full": {"k": (1, 2, 3, 4, 5, 6), "weightings": WEIGHTINGS, "seeds": 5, "epochs": 30001,
              "net": {}},
