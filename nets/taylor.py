@@ -149,8 +149,8 @@ def _sigma3(layer: nn.Module, z: torch.Tensor) -> list[torch.Tensor]:
 
 
 # The forward Laplacian's tanh layers, fused: one pass over the (N, width) elements instead of
-# a dozen torch element-wise ops, each a trip through memory (measured 3.6x less time per layer
-# at N = 2500, width 50, beside torch's tanh, which stays in torch).
+# a dozen torch element-wise ops, each a trip through memory; torch's tanh stays in torch
+# (`python benchmarks/pinn.py`: 1.60x -> 1.97x over nested autograd on the Poisson epoch).
 @njit(cache=True)
 def _tanh_layer(t, z1, z2, y1, y2, s1, s2, s3, q):
     """From t = tanh(z0): σ', σ'', σ‴ (s1, s2, s3), q = Σ_d z1², y1 = σ' z1 and
