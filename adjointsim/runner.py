@@ -298,10 +298,12 @@ def _run_on_dask(client, study: Study, todo: list[dict], out: Path, retries: int
     from distributed.client import FutureCancelledError
 
     futures = {}
-    for cell in todo:
+    for i, cell in enumerate(todo):
+        # cells start in the study's order (higher priority first): a study stopped early
+        # has the cells it lists first
         f = client.submit(_worker_execute, study.run_cell, cell, str(out / cell["id"]),
                           key=f"{study.name}-{cell['id']}-{uuid.uuid4().hex[:8]}",
-                          retries=retries, pure=False)
+                          retries=retries, pure=False, priority=len(todo) - i)
         futures[f] = cell["id"]
     for f in as_completed(futures):
         try:

@@ -65,8 +65,10 @@ def _levels(spec, task: str) -> tuple:
     levels = TASKS[task].levels
     if isinstance(spec, dict):
         return spec.get(task, ())
+    # "all" puts the hardest and easiest levels first: they hold the paper's findings, so a
+    # study stopped early (it resumes) has them before the middle levels
     return {"ends": (levels[0], levels[-1]), "easiest": (levels[0],), "hardest": (levels[-1],),
-            "all": levels}[spec]
+            "all": (levels[-1], levels[0], *levels[1:-1])}[spec]
 
 
 def cells(size: str, seeds: int | None) -> list[dict]:
@@ -83,6 +85,8 @@ def cells(size: str, seeds: int | None) -> list[dict]:
                             "seed": seed, "epochs": s["epochs"][task], "train": s["train"],
                             "test": s["test"], "batch": s["batch"],
                         })
+    # level by level across tasks (stable: task order kept within a level)
+    out.sort(key=lambda c: _levels(s["tasks"], c["task"]).index(c["level"]))
     return out
 
 
