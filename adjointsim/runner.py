@@ -98,9 +98,14 @@ def run(
     retries: int = 1,
     progress: bool = True,
     report: bool = True,
+    reuse: str | Path | None = None,
 ) -> list[dict]:
     """Run every unfinished cell of a study, write ``OUT/rows.json`` and (if ``report``) the
     study's report of the finished rows.
+
+    ``reuse``: a JSON list of rows of an earlier run (its ``rows.json`` or ``--json`` file,
+    e.g. committed from another machine); a cell with a row there is finished, once that row
+    is checked to be of the same configuration and copied to ``OUT/<id>/row.json``.
 
     Returns the rows in cell order; raises :class:`CellsFailed` (after writing what finished)
     if any cell failed.
@@ -117,6 +122,8 @@ def run(
     out = Path(out).resolve()
     cells = study.cells(size, seeds)
     _check_ids(cells, study_name)
+    if reuse is not None:
+        _adopt(cells, reuse, out)
     rows: dict[str, dict] = {}
     for cell in cells:
         row = finished_row(cell, out / cell["id"])
@@ -180,11 +187,41 @@ def finished_row(cell: dict, run_dir: Path) -> dict | None:
             raise ValueError(f"a JSON {type(row).__name__}, not an object")
     except ValueError as e:
         raise ValueError(f"{path} is damaged ({e}); delete it to run the cell again") from None
-    differ = sorted(k for k, v in cell.items() if _jsonable(v) != row.get(k))
+    differ = _differs(cell, row)
     if differ:
         raise ValueError(f"{path} holds a result of another configuration (differs in "
                          f"{differ}); use another --out, or delete {run_dir} to redo the cell")
     return row
+
+
+def _differs(cell: dict, row: dict) -> list[str]:
+    """The cell's keys whose values the row does not hold."""
+    return sorted(k for k, v in cell.items() if _jsonable(v) != row.get(k))
+
+
+def _adopt(cells: list[dict], path: str | Path, out: Path) -> None:
+    """Write the rows of ``path`` that belong to ``cells`` as their run directories' row
+    files (a cell that already has one keeps it; a row of another configuration is
+    refused)."""
+    try:
+        given = json.loads(Path(path).read_text())
+        if not (isinstance(given, list) and all(isinstance(r, dict) for r in given)):
+            raise ValueError("not a JSON list of rows")
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--reuse {path}: cannot read its rows ({e}); give a rows.json or "
+                         "--json file of an earlier run of this study") from None
+    by_id = {r.get("id"): r for r in given}
+    for cell in cells:
+        row, run_dir = by_id.get(cell["id"]), out / cell["id"]
+        if row is None or (run_dir / ROW_FILE).exists():
+            continue
+        differ = _differs(cell, row)
+        if differ:
+            raise ValueError(f"--reuse {path}: its row {cell['id']!r} is of another "
+                             f"configuration (differs in {differ}); it belongs to another "
+                             "size or version of the study")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_text(run_dir / ROW_FILE, dumps(row))
 
 
 def dumps(obj: Any) -> str:

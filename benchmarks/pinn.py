@@ -4,7 +4,9 @@ route (nets/taylor.py) against nested reverse-mode autograd, side by side in one
 
 Rounds alternate the two routes; each round times ``--epochs`` epochs in CPU time of this
 (one-thread) process, which a shared machine's other load disturbs less than wall-clock; the
-median epoch time per route and the ratio are printed.
+median epoch time per route and the ratio are printed. A last profiled epoch lists the forward
+route's matrix products (torch's mm/addmm calls), which are replayed alone on warm buffers:
+their time bounds the speed-up the route could reach if everything else cost nothing.
 Run: ``python benchmarks/pinn.py [--rounds 7]``.
 """
 
@@ -56,6 +58,36 @@ def main() -> None:
     print(f"  forward Taylor : {1e3 * t_f:7.2f} ms/epoch  {1 / t_f:7.1f} epochs/s")
     print(f"  nested autograd: {1e3 * t_a:7.2f} ms/epoch  {1 / t_a:7.1f} epochs/s")
     print(f"  speed-up       : {t_a / t_f:.2f}x")
+    floor = product_floor("taylor", args.weighting)
+    print(f"  matrix products: {1e3 * floor:7.2f} ms/epoch for the forward Taylor route's "
+          "products alone, each replayed on warm buffers")
+    print(f"  bound          : {t_a / floor:.2f}x if all but those products were free")
+
+
+def product_floor(route: str, weighting: str, epochs: int = 3) -> float:
+    """Seconds per epoch the route's matrix products take alone: the mm/addmm calls of a
+    profiled epoch, by shape, each replayed on preallocated inputs and outputs (no
+    allocation or page faults), median of 5 repeats."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        epoch_time(route, epochs, weighting)
+    total = 0.0
+    for e in prof.key_averages(group_by_input_shape=True):
+        if e.key not in ("aten::mm", "aten::addmm"):
+            continue
+        shapes = [tuple(s) for s in e.input_shapes if s]
+        args = [torch.rand(s) for s in shapes]
+        out = torch.empty(shapes[-2][0], shapes[-1][1])
+        op = torch.mm if e.key == "aten::mm" else torch.addmm
+        reps = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for _ in range(20):
+                op(*args, out=out)
+            reps.append((time.perf_counter() - t0) / 20)
+        total += median(reps) * e.count
+    return total / epochs
 
 
 if __name__ == "__main__":

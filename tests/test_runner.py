@@ -153,3 +153,29 @@ def test_a_row_of_another_cell_is_refused(tmp_path):
         runner.run("no-such-study", tmp_path, "tiny", None)
     with pytest.raises(ValueError, match="--cluster 'laptop'"):
         runner.resolve_cluster("laptop")
+
+
+def test_rows_of_an_earlier_run_are_reused_not_rerun(tmp_path, capsys):
+    """--reuse: the rows of a run elsewhere (its --json file) finish those cells here; a row
+    of another configuration and an unreadable file are refused with the flag named."""
+    first = tmp_path / "first"
+    argv = ["study", "runner-test", "--size", "ok", "--seeds", "2", "--cluster", "none",
+            "--no-progress"]
+    assert main([*argv, "--out", str(first), "--json", str(tmp_path / "rows.json")]) == 0
+    second = tmp_path / "second"
+    assert main([*argv, "--seeds", "3", "--out", str(second),
+                 "--reuse", str(tmp_path / "rows.json")]) == 0
+    assert [c.split()[0] for c in _calls(second)] == ["ok-2"]  # only the cell not in the file
+    rows = json.loads((second / "rows.json").read_text())
+    assert rows[:2] == json.loads((tmp_path / "rows.json").read_text())
+    bad = json.loads((tmp_path / "rows.json").read_text())
+    bad[0]["seed"] = 5
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"--reuse .*bad.json: its row 'ok-0' is of another "
+                       r"configuration \(differs in \['seed'\]\)"):
+        runner.run("runner-test", tmp_path / "third", "ok", 2, cluster="none",
+                   reuse=tmp_path / "bad.json")
+    (tmp_path / "cut.json").write_text('[{"id": "ok-0"')
+    with pytest.raises(ValueError, match="cannot read its rows"):
+        runner.run("runner-test", tmp_path / "third", "ok", 2, cluster="none",
+                   reuse=tmp_path / "cut.json")

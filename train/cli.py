@@ -90,6 +90,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="times a failed cell is run again, resuming from its checkpoint")
     s.add_argument("--out", type=Path, default=None, help="default runs/study-PROBLEM[-SIZE]")
     s.add_argument("--json", type=Path, default=None, help="write one object per model here")
+    s.add_argument("--reuse", type=Path, default=None, metavar="ROWS",
+                   help="finished rows of an earlier run (its --json or rows.json file, e.g. "
+                   "one committed under docs/): those cells are not run again")
     s.add_argument("--no-progress", dest="progress", action="store_false",
                    help="no progress bar")
     s.set_defaults(func=_study, size="full")
@@ -177,7 +180,7 @@ def _study(args: argparse.Namespace) -> int:
     try:
         rows = runner.run(args.problem, out, args.size, args.seeds, cluster=args.cluster,
                           jobs=args.jobs, retries=args.retries, progress=args.progress,
-                          report=False)
+                          report=False, reuse=args.reuse)
     except runner.CellsFailed as e:
         rows, failed = e.rows, e.failures
     except KeyboardInterrupt:
