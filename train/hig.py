@@ -152,7 +152,8 @@ class HalfInverseGradients:
     ``__call__``/``jacobian`` pair; ``loss(y, target)`` returns the per-sample losses (b,).
     ``max_jacobian_mb`` bounds the float J (and so the SVD's input): a batch whose J would be
     larger is refused before any work. After each :meth:`step`, ``timing`` holds the seconds of
-    its parts: ``network`` and ``physics`` (the two Jacobian factors), ``svd`` and ``apply``.
+    its parts: ``network`` and ``physics`` (the two Jacobian factors), ``decomposition`` and
+    ``apply``.
     """
 
     def __init__(
@@ -273,7 +274,7 @@ class HalfInverseGradients:
         t2 = time.perf_counter()
         apply_update(self.model.parameters(), delta, -self.lr)
         # "apply" counts the loss gradient g and the parameter update
-        self.timing.update(svd=t2 - t1, apply=(t1 - t0) + time.perf_counter() - t2)
+        self.timing.update(decomposition=t2 - t1, apply=(t1 - t0) + time.perf_counter() - t2)
         return float(loss.detach())
 
 
