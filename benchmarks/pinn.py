@@ -76,10 +76,10 @@ def product_floor(route: str, weighting: str, epochs: int = 3) -> float:
     for e in prof.key_averages(group_by_input_shape=True):
         if e.key not in ("aten::mm", "aten::addmm"):
             continue
-        shapes = [tuple(s) for s in e.input_shapes if s]
+        op, n = (torch.mm, 2) if e.key == "aten::mm" else (torch.addmm, 3)
+        shapes = [tuple(s) for s in e.input_shapes[:n]]  # (an out= tensor comes after)
         args = [torch.rand(s) for s in shapes]
         out = torch.empty(shapes[-2][0], shapes[-1][1])
-        op = torch.mm if e.key == "aten::mm" else torch.addmm
         reps = []
         for _ in range(5):
             t0 = time.perf_counter()

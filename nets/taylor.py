@@ -203,31 +203,76 @@ def _np(t: torch.Tensor | None, like: torch.Tensor) -> np.ndarray:
     return t.contiguous().numpy()
 
 
+class _Buffers:
+    """The forward Laplacian's (N, width) arrays for one shape of problem, handed to the next
+    call once the graph that used them is gone (:class:`_Lease`). Fresh arrays every epoch
+    are fresh pages, and their page faults cost about a fifth of a Poisson epoch
+    (`python benchmarks/pinn.py`); a training loop's epochs share one set instead."""
+
+    free: dict[tuple, list[_Buffers]] = {}
+    SHAPES = 4  # shapes kept (oldest dropped): a loop over many batch sizes holds no more
+
+    def __init__(self) -> None:
+        self.arrays: dict[str, torch.Tensor] = {}
+
+    def __call__(self, name: str, shape: tuple, like: torch.Tensor) -> torch.Tensor:
+        t = self.arrays.get(name)
+        if t is None:
+            t = self.arrays[name] = like.new_empty(shape)
+        return t
+
+
+class _Lease:
+    """Holds a :class:`_Buffers` for one graph (as an attribute of its autograd context) and
+    frees it for reuse when the graph is deleted."""
+
+    def __init__(self, key: tuple) -> None:
+        free = _Buffers.free.get(key)
+        self.key, self.buffers = key, free.pop() if free else _Buffers()
+
+    def __del__(self) -> None:
+        free = _Buffers.free.setdefault(self.key, [])
+        free.append(self.buffers)
+        while len(_Buffers.free) > _Buffers.SHAPES:
+            del _Buffers.free[next(iter(_Buffers.free))]
+
+
 class _ForwardLaplacian(torch.autograd.Function):
     """(u, Σ_d u^(2)_d) of a Linear/activation stack with a hand-written reverse pass for the
     parameters. Per hidden layer, with q = Σ_d z1², the forward is
     y0 = σ(z0), y1 = σ' z1, y2 = σ'' q + σ' z2, and the reverse is
     z̄2 = σ' ȳ2,  z̄1 = σ' ȳ1 + 2σ'' ȳ2 z1,  z̄0 = σ' ȳ0 + σ'' Σ_d ȳ1 z1 + ȳ2 (σ‴ q + σ'' z2),
     then the linear layer's usual products. Fewer, in-place passes than autograd's op-by-op
-    graph; no gradient for x or the directions."""
+    graph, into reused buffers (tanh layers); no gradient for x or the directions."""
 
     @staticmethod
     def forward(ctx, x, dirs, acts, *wb):
         weights, biases = wb[0::2], wb[1::2]
+        n, k = x.shape[0], dirs.shape[0]
+        ctx.lease = _Lease((n, k, x.dtype, *(tuple(W.shape) for W in weights)))
+        buf = ctx.lease.buffers
         a0, a1, a2 = x, dirs, None
         saved = []
-        for W, b, act in zip(weights[:-1], biases[:-1], acts):
-            z0 = torch.addmm(b, a0, W.T)
-            z1 = a1 @ W.T  # (D, w) at the first layer, then (N, D, w)
-            z2 = None if a2 is None else a2 @ W.T
+        for i, (W, b, act) in enumerate(zip(weights[:-1], biases[:-1], acts)):
+            w = W.shape[0]
             if isinstance(act, nn.Tanh):
-                z1 = z1.expand(z0.shape[0], *z1.shape[-2:]).contiguous()
-                s0 = torch.tanh(z0)
-                s1, s2, s3, q, y2 = (torch.empty_like(z0) for _ in range(5))
-                y1 = torch.empty_like(z1)
+                z0 = torch.addmm(b, a0, W.T, out=buf(f"z0{i}", (n, w), x))
+                z1 = buf(f"z1{i}", (n, k, w), x)
+                if a1.ndim == 2:  # first layer: W v_d, the same for every point
+                    z1.copy_((a1 @ W.T).expand(n, k, w))
+                else:
+                    torch.matmul(a1, W.T, out=z1)
+                z2 = None if a2 is None else torch.mm(a2, W.T, out=buf(f"z2{i}", (n, w), x))
+                s0, s1, s2, s3, q, y2 = (buf(f"{name}{i}", (n, w), x)
+                                         for name in ("s0", "s1", "s2", "s3", "q", "y2"))
+                y1 = buf(f"y1{i}", (n, k, w), x)
+                np.tanh(z0.numpy(), out=s0.numpy())  # NumPy's SIMD tanh: 2x torch's here
                 _tanh_layer(s0.numpy(), z1.numpy(), _np(z2, z0), y1.numpy(), y2.numpy(),
                             s1.numpy(), s2.numpy(), s3.numpy(), q.numpy())
             else:
+                z0 = torch.addmm(b, a0, W.T)
+                z1 = a1 @ W.T  # (D, w) at the first layer, then (N, D, w)
+                z2 = None if a2 is None else a2 @ W.T
                 s0, s1, s2, s3 = _sigma3(act, z0)
                 q = (z1 * z1).sum(dim=-2)
                 y2 = s2 * q
@@ -247,6 +292,7 @@ class _ForwardLaplacian(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, gu, gl):
         weights = ctx.saved_tensors[0::2]
+        buf = ctx.lease.buffers
         a0, a2 = ctx.last
         W = weights[-1]
         grads = [gu.T @ a0 + (gl.T @ a2 if a2 is not None else 0.0), gu.sum(dim=0)]
@@ -255,8 +301,8 @@ class _ForwardLaplacian(torch.autograd.Function):
             a0, a1, a2, z1, z2, q, s1, s2, s3, act = ctx.saved[i]
             W = weights[i]
             if isinstance(act, nn.Tanh):
-                zb0, zb2 = torch.empty_like(s1), torch.empty_like(s1)
-                zb1 = torch.empty_like(z1)
+                zb0, zb2 = buf(f"zb0{i}", s1.shape, s1), buf(f"zb2{i}", s1.shape, s1)
+                zb1 = buf(f"zb1{i}", z1.shape, z1)
                 _tanh_layer_adjoint(s1.numpy(), s2.numpy(), s3.numpy(), q.numpy(), z1.numpy(),
                                     _np(z2, s1), _np(g0, s1), _np(g1, z1), _np(g2, s1),
                                     zb0.numpy(), zb1.numpy(), zb2.numpy())
@@ -278,7 +324,10 @@ class _ForwardLaplacian(torch.autograd.Function):
                 gW = gW + zb2.T @ a2
             grads = [gW, zb0.sum(dim=0), *grads]
             if i > 0:
-                g0, g1, g2 = zb0 @ W, zb1 @ W, zb2 @ W
+                w = W.shape[1]
+                g0 = torch.mm(zb0, W, out=buf(f"g0{i}", (zb0.shape[0], w), zb0))
+                g1 = torch.matmul(zb1, W, out=buf(f"g1{i}", (*zb1.shape[:2], w), zb1))
+                g2 = torch.mm(zb2, W, out=buf(f"g2{i}", (zb2.shape[0], w), zb2))
         return (None, None, None, *grads)
 
 

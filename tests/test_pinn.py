@@ -23,8 +23,11 @@ def _cfg(**kw):
 def test_problem_matches_the_note():
     cfg = PinnConfig(k=3)
     p = make_problem(cfg)
-    assert p.x_col.shape == (2500, 2) and len(p.edges) == 4
-    assert all(x.shape == (100, 2) for x, _ in p.edges)
+    assert p.x_col.shape == (2500, 2) and p.x_bc.shape == (400, 2)
+    # 100 points on each edge in turn: x = 0, x = 1, y = 0, y = 1
+    edges = p.x_bc.view(4, 100, 2)
+    for e, (axis, value) in enumerate(((0, 0.0), (0, 1.0), (1, 0.0), (1, 1.0))):
+        assert (edges[e, :, axis] == value).all()
     # every collocation point lies on the 100 × 100 grid, none twice
     assert len({tuple(r) for r in (p.x_col * 99).round().int().tolist()}) == 2500
     assert sum(m.numel() for m in p.model().parameters()) == 10401

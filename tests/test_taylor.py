@@ -102,3 +102,27 @@ def test_fused_tanh_layers_in_float32_match_float64():
         out[dtype] = [t.double() for t in (u, lap, *grads)]
     for a, b in zip(out[torch.float32], out[torch.float64]):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * (1 + float(b.abs().max())))
+
+
+def test_graphs_alive_at_once_keep_their_own_buffers():
+    """The forward Laplacian reuses its arrays only once a graph is gone: two graphs of the
+    same shape alive together, one of them differentiated twice (retain_graph), and a third
+    made after the first is deleted all give the gradients of fresh, separate calls."""
+    torch.manual_seed(3)
+    model = MLP(2, 1, 8, 3, "tanh").double()
+    params = list(model.parameters())
+    xs = [torch.randn(20, 2, dtype=torch.float64) for _ in range(3)]
+
+    def grads(lap, **kw):
+        return torch.autograd.grad((lap**2).sum(), params, **kw)
+
+    ref = [grads(laplacian(model, x)[1]) for x in xs]
+    lap0, lap1 = laplacian(model, xs[0])[1], laplacian(model, xs[1])[1]
+    got1 = grads(lap1, retain_graph=True)
+    got0 = grads(lap0)
+    again1 = grads(lap1)
+    del lap0
+    got2 = grads(laplacian(model, xs[2])[1])
+    for want, have in ((ref[0], got0), (ref[1], got1), (ref[1], again1), (ref[2], got2)):
+        for a, b in zip(have, want):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
