@@ -1,6 +1,7 @@
 """Gradient-flow modes (R/M/S/N/C, clipping), the closed loop, the control CLI and the study."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -286,5 +287,7 @@ def test_tiny_study_end_to_end(tmp_path):
         assert {"task", "level", "mode", "clip", "seed", "test_loss"} <= set(r)
         assert np.isfinite(r["test_loss"])
     assert (tmp_path / "stablebptt-cartpole.png").exists()
-    assert "cartpole" in (tmp_path / "table.txt").read_text()
+    text = (tmp_path / "table.txt").read_text()
+    # the summary: R and C with their ratios to the untrained loss, C against R on 1 seed
+    assert re.search(r"cartpole +1 none +\S+ \[\d\.\d{3}\] +\S+ \[\d\.\d{3}\] +[01]/1 +-\n", text)
     json.loads((tmp_path / "rows.json").read_text())

@@ -136,10 +136,43 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def summary(rows: list[dict]) -> str:
+    """One line per task, level and clip: each mode's final test loss (mean over seeds) and,
+    in brackets, its mean ratio to the untrained loss; then on how many seeds C ends below R
+    and below M (paired by seed)."""
+    cell = {(r["task"], r["level"], r["clip"], r["mode"], r["seed"]): r for r in rows}
+    keys = sorted({k[:3] for k in cell}, key=lambda k: (list(TASKS).index(k[0]),
+                                                        TASKS[k[0]].levels.index(k[1]), k[2]))
+    modes = [m for m in "RMSNC" if any(k[3] == m for k in cell)]
+    lines = [f"{'task':<9} {'level':>6} {'clip':<5} "
+             + " ".join(f"{m:<17}" for m in modes) + "  C<R   C<M"]
+    for task, level, clip in keys:
+        entries, final = [], {}
+        for m in modes:
+            rs = [r for k, r in cell.items() if k[:4] == (task, level, clip, m)]
+            final[m] = {r["seed"]: r["test_loss"] for r in rs if r["test_loss"] is not None}
+            if not final[m]:
+                entries.append(f"{'-':<17}")
+                continue
+            ratio = [r["test_loss"] / r["untrained_test_loss"] for r in rs
+                     if r["test_loss"] is not None and r.get("untrained_test_loss")]
+            text = f"{np.mean(list(final[m].values())):.3g}"
+            entries.append(f"{text + (f' [{np.mean(ratio):.3f}]' if ratio else ''):<17}")
+        wins = []
+        for other in ("R", "M"):
+            paired = [s for s in final.get("C", {}) if s in final.get(other, {})]
+            below = sum(final["C"][s] < final[other][s] for s in paired)
+            wins.append(f"{below}/{len(paired)}" if paired else "-")
+        lines.append(f"{task:<9} {level!s:>6} {clip:<5} " + " ".join(entries)
+                     + f"  {wins[0]:<5} {wins[1]}")
+    return "\n".join(lines)
+
+
 def report(rows: list[dict], out: Path) -> str:
-    """Table (``table.txt``) and one plot per task (``stablebptt-TASK.png``)."""
+    """Table (``table.txt``: the summary, then every group) and one plot per task
+    (``stablebptt-TASK.png``)."""
     out = Path(out)
-    text = table(rows)
+    text = summary(rows) + "\n\n" + table(rows)
     write_text(out / "table.txt", text + "\n")
     for task in TASKS:
         mine = [r for r in rows if r["task"] == task]
