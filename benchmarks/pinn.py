@@ -4,9 +4,11 @@ route (nets/taylor.py) against nested reverse-mode autograd, side by side in one
 
 Rounds alternate the two routes; each round times ``--epochs`` epochs in CPU time of this
 (one-thread) process, which a shared machine's other load disturbs less than wall-clock; the
-median epoch time per route and the ratio are printed. A last profiled epoch lists the forward
+median epoch time per route and the ratio are printed. A last profiled round lists the forward
 route's matrix products (torch's mm/addmm calls), which are replayed alone on warm buffers:
-their time bounds the speed-up the route could reach if everything else cost nothing.
+their time bounds the speed-up the route could reach if everything else cost nothing. It also
+splits the epoch into the forward Laplacian and the rest (the boundary term, the weighting,
+Adam), and prints the time the Laplacian would have to fit in for a 3x speed-up.
 Run: ``python benchmarks/pinn.py [--rounds 7]``.
 """
 
@@ -58,26 +60,46 @@ def main() -> None:
     print(f"  forward Taylor : {1e3 * t_f:7.2f} ms/epoch  {1 / t_f:7.1f} epochs/s")
     print(f"  nested autograd: {1e3 * t_a:7.2f} ms/epoch  {1 / t_a:7.1f} epochs/s")
     print(f"  speed-up       : {t_a / t_f:.2f}x")
-    floor = product_floor("taylor", args.weighting)
+    floor, inside, lap, rest = split("taylor", args.weighting)
     print(f"  matrix products: {1e3 * floor:7.2f} ms/epoch for the forward Taylor route's "
-          "products alone, each replayed on warm buffers")
+          f"products alone, each replayed on warm buffers ({1e3 * inside:.2f} ms of them in "
+          "the forward Laplacian)")
     print(f"  bound          : {t_a / floor:.2f}x if all but those products were free")
+    print(f"  profiled       : the forward Laplacian (forward + reverse) {1e3 * lap:.2f} ms/epoch, "
+          f"the rest of the epoch {1e3 * rest:.2f} ms")
+    print(f"  3x needs       : the forward Laplacian in ≤ {1e3 * (t_a / 3 - rest):.2f} ms/epoch "
+          f"(its products alone: {1e3 * inside:.2f} ms)")
 
 
-def product_floor(route: str, weighting: str, epochs: int = 3) -> float:
-    """Seconds per epoch the route's matrix products take alone: the mm/addmm calls of a
-    profiled epoch, by shape, each replayed on preallocated inputs and outputs (no
-    allocation or page faults), median of 5 repeats."""
+_LAPLACIAN = ("_ForwardLaplacian", "_ForwardLaplacianBackward")
+
+
+def split(route: str, weighting: str, epochs: int = 10) -> tuple[float, float, float, float]:
+    """Seconds per epoch: the route's matrix products alone, all and those inside the forward
+    Laplacian's Function (the mm/addmm calls of a profiled round, by shape, each replayed on
+    preallocated inputs and outputs, so without allocation or page faults; median of 5
+    repeats), then in the profiled round the forward Laplacian (forward and backward) and
+    everything else."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
-        epoch_time(route, epochs, weighting)
-    total = 0.0
-    for e in prof.key_averages(group_by_input_shape=True):
-        if e.key not in ("aten::mm", "aten::addmm"):
+        epoch = epoch_time(route, epochs, weighting)
+    calls: dict[tuple, int] = {}
+    lap = 0.0
+    for e in prof.events():
+        if e.name in _LAPLACIAN:
+            lap += e.cpu_time_total * 1e-6 / epochs
+        if e.name not in ("aten::mm", "aten::addmm"):
             continue
-        op, n = (torch.mm, 2) if e.key == "aten::mm" else (torch.addmm, 3)
-        shapes = [tuple(s) for s in e.input_shapes[:n]]  # (an out= tensor comes after)
+        n = 2 if e.name == "aten::mm" else 3  # (an out= tensor comes after)
+        parent, inside = e.cpu_parent, False
+        while parent is not None and not inside:
+            inside, parent = parent.name in _LAPLACIAN, parent.cpu_parent
+        key = (e.name, tuple(tuple(s) for s in e.input_shapes[:n]), inside)
+        calls[key] = calls.get(key, 0) + 1
+    floor = inside_floor = 0.0
+    for (name, shapes, inside), count in calls.items():
+        op = torch.mm if name == "aten::mm" else torch.addmm
         args = [torch.rand(s) for s in shapes]
         out = torch.empty(shapes[-2][0], shapes[-1][1])
         reps = []
@@ -86,8 +108,10 @@ def product_floor(route: str, weighting: str, epochs: int = 3) -> float:
             for _ in range(20):
                 op(*args, out=out)
             reps.append((time.perf_counter() - t0) / 20)
-        total += median(reps) * e.count
-    return total / epochs
+        t = median(reps) * count / epochs
+        floor += t
+        inside_floor += t if inside else 0.0
+    return floor, inside_floor, lap, epoch - lap
 
 
 if __name__ == "__main__":
