@@ -211,7 +211,7 @@ def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
              truth_u0: np.ndarray | None) -> None:
     """Fitted against observed states (first batch element and channel) at up to four observed
     steps, and the fitted initial state against the truth when it is known."""
-    from train.atomic import atomic_path
+    from train.atomic import save_figure
 
     plt = _pyplot()
     steps = list(obs)
@@ -247,14 +247,11 @@ def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
         ax.set_title("initial state", fontsize=9)
     fig.suptitle(f"{scene.name}: fitted {', '.join(result.wrt)}, misfit {result.misfit:.3g}",
                  fontsize=10)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def plot_history(path: Path, history: list[dict], title: str) -> None:
-    from train.atomic import atomic_path
+    from train.atomic import save_figure
 
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -263,10 +260,7 @@ def plot_history(path: Path, history: list[dict], title: str) -> None:
     ax.semilogy(it, [max(h["grad_norm"], 1e-300) for h in history], label="gradient norm")
     ax.set(xlabel="iteration", title=title)
     ax.legend()
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def _pairs(items: list[str] | None, what: str) -> dict[str, str]:

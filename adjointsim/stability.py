@@ -192,7 +192,7 @@ def report(rows: list[dict], out: Path) -> str:
     """``OUT/stability.md`` (table) and ``OUT/stability.png``: per scheme family, the largest
     stable Δt against the grid size (markers; triangles: stable up to the search cap) and the
     stated limit (dashed)."""
-    from train.atomic import atomic_path, write_text
+    from train.atomic import save_figure, write_text
 
     text = table(rows)
     write_text(out / "stability.md", text + "\n")
@@ -236,10 +236,7 @@ def report(rows: list[dict], out: Path) -> str:
         ax.axis("off")
     fig.suptitle("largest Δt with a bounded rollout (circles; triangles: bounded up to the "
                  "search cap), stated limit (dashed)", fontsize=10)
-    fig.tight_layout()
-    with atomic_path(out / "stability.png") as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, out / "stability.png", dpi=100)
     return text
 
 

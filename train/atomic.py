@@ -35,6 +35,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> None:
+    """Lay out a matplotlib figure, write it atomically (format from the suffix, PNG by
+    default) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=Path(path).suffix.lstrip(".") or "png")
+    plt.close(fig)
+
+
 @contextmanager
 def uninterrupted() -> Iterator[None]:
     """Hold Ctrl-C (SIGINT) until the block ends, then raise it: an update and the counters

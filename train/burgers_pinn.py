@@ -37,7 +37,7 @@ from torch import nn
 from nets.mlp import MLP
 from nets.taylor import jets
 
-from .atomic import atomic_path, write_json, write_text
+from .atomic import save_figure, write_json, write_text
 from .weighting import Weighting
 
 NU = 0.01 / math.pi
@@ -259,10 +259,7 @@ def plot(path: Path, dp: dict, net: nn.Module, prob: BurgersPinn, history: list[
               ylabel="MSE")
     for a in ax:
         a.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def nu_study(out: Path, seconds: float, noises: tuple[float, ...] = (0.0, 0.01), seed: int = 0,

@@ -43,7 +43,7 @@ import adjointsim
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
-from .atomic import atomic_path, write_json, write_text
+from .atomic import atomic_path, save_figure, write_json, write_text
 from .unroll import CLIPS, FLOWS, GradientFlow
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -449,10 +449,7 @@ def plot_history(histories: list[list[dict]], labels: list[str], path: Path,
     ax.set_ylabel("test loss (30-epoch mean)")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 @torch.no_grad()
@@ -494,10 +491,7 @@ def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
         ax.set_xlabel("t")
         ax.set_ylabel("x")
     ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 # ----------------------------------------------------------------------------- CLI

@@ -22,6 +22,7 @@ import torch
 from adjointsim import NonFiniteInputError, NonFiniteStateError
 from adjointsim.cli import UserError
 
+from .atomic import save_figure
 from .data import Dataset, Split
 from .model import NeuralStepper
 
@@ -218,6 +219,4 @@ def plot_rollout(
         axes[2].legend()
     axes[2].axvline(horizon, color="gray", lw=0.5)
     axes[2].set(title="relative error over time", xlabel="step")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

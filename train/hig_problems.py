@@ -56,6 +56,7 @@ from .atomic import (
     RunExists,
     atomic_path,
     finished_result,
+    save_figure,
     uninterrupted,
     write_json,
     write_text,
@@ -469,10 +470,7 @@ def plot_history(curves: dict[str, list[dict]], path: Path, title: str, ax=None)
            ylabel="test loss", title=title)
     ax.legend(fontsize=7)
     if fig is not None:
-        fig.tight_layout()
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=120)
-        plt.close(fig)
+        save_figure(fig, path, dpi=120)
 
 
 # --------------------------------------------------------------------------- CLI

@@ -46,6 +46,7 @@ from .atomic import (
     RunExists,
     atomic_path,
     finished_result,
+    save_figure,
     uninterrupted,
     write_json,
     write_text,
@@ -620,10 +621,7 @@ def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
         ax.set(title=name, xlabel=problem.axes[0], ylabel=problem.axes[1])
         fig.colorbar(im, ax=ax, shrink=0.8)
     fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_path(out / "field.png") as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "field.png", dpi=110)
 
     extras = tuple(problem.extras(model))
     fig, axes = plt.subplots(1, 3 + bool(extras), figsize=(12 + 4 * bool(extras), 3.4))
@@ -643,10 +641,7 @@ def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
         if name != "relative L2 error":
             ax.legend(fontsize=7)
     fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_path(out / "history.png") as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "history.png", dpi=110)
 
 
 # ----------------------------------------------------------------------------- CLI

@@ -35,7 +35,7 @@ from adjointsim.cli import ConfigTypeError, DamagedFileError, UserError
 from nets import DilatedResNet, ResNet, UNet, parameter_count
 
 from . import data as datamod
-from .atomic import atomic_path, write_text
+from .atomic import atomic_path, save_figure, write_text
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
@@ -507,9 +507,7 @@ def _write_history(history: list[dict], out: Path) -> None:
     ax.set_xlabel("iteration")
     ax.set_ylabel("unrolled MSE")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "training.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "training.png", dpi=120)
 
 
 def describe(model: NeuralStepper) -> str:

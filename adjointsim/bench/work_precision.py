@@ -39,6 +39,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from train.atomic import save_figure
+
 from ..registry import get
 from ..spectral import fft1d, fft2d
 from ..spectral.etdrk import etdrk_coefficients, reference_step
@@ -363,9 +365,7 @@ def plot(rows: list[dict], scene: Scene, path: Path) -> None:
                  fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

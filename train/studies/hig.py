@@ -18,7 +18,7 @@ import torch
 
 from adjointsim.runner import Study, register_study
 
-from ..atomic import atomic_path, write_text
+from ..atomic import save_figure, write_text
 from ..hig_problems import OPTIMIZERS, PROBLEMS, RunConfig, loss_at, read_history
 from ..hig_problems import train_run as _train_run
 
@@ -162,10 +162,7 @@ def plot(rows: list[dict], out: Path, path: Path) -> None:
         if start > 0:
             ax.set_ylim(top=10 * start)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 register_study(Study(name="hig", sizes=tuple(SIZES), cells=cells, run_cell=run_cell,

@@ -19,7 +19,7 @@ import numpy as np
 from adjointsim.runner import Study, register_study
 
 from .. import data as datamod
-from ..atomic import write_text
+from ..atomic import save_figure, write_text
 from ..evaluate import TEST_SPLITS, evaluate
 from ..trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 
@@ -179,9 +179,7 @@ def write_summary(rows: list[dict], out: Path, horizon: int) -> None:
         ax.legend()
     ax.set_yscale("log")
     ax.set_ylabel(f"relative error over {horizon} steps")
-    fig.tight_layout()
-    fig.savefig(out / "study.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "study.png", dpi=120)
     _plot_curves(rows, out, plt)
 
 
@@ -207,9 +205,7 @@ def _plot_curves(rows: list[dict], out: Path, plt) -> None:
         ax.set_xlabel("update")
         ax.set_ylabel("training loss (median of 200 updates)")
         ax.legend(fontsize=6, ncol=2)
-    fig.tight_layout()
-    fig.savefig(out / "curves.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "curves.png", dpi=120)
 
 
 for _problem, _spec in STUDIES.items():

@@ -18,7 +18,7 @@ import torch
 
 from adjointsim.runner import Study, register_study
 
-from ..atomic import atomic_path, write_text
+from ..atomic import save_figure, write_text
 from ..pinn import REPORTED, PinnConfig, train_run
 
 WEIGHTINGS = ("uniform", "inverse-dirichlet", "max-avg", "fixed")
@@ -124,13 +124,6 @@ def _axes():
     return plt.subplots(figsize=(5.5, 4))
 
 
-def _save(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
 
 
 def _report(text: str, out: Path, plot_fn, rows: list[dict], name: str) -> str:
@@ -157,7 +150,7 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set(yscale="log", xticks=ks, xlabel="k (ω = kπ)", ylabel="relative L2 error",
            title="Poisson PINN (dashed: authors, 30k epochs)")
     ax.legend(fontsize=7)
-    _save(fig, path)
+    save_figure(fig, path, dpi=120)
 
 
 def report(rows: list[dict], out: Path) -> str:
@@ -240,7 +233,7 @@ def ks_plot(rows: list[dict], path: Path) -> None:
            xlabel="end of phase", ylabel="data loss (MSE)",
            title="KS inverse: is the data fit forgotten?")
     ax.legend(fontsize=7)
-    _save(fig, path)
+    save_figure(fig, path, dpi=120)
 
 
 def ks_report(rows: list[dict], out: Path) -> str:

@@ -27,16 +27,16 @@ import numpy as np
 
 from adjointsim.runner import Study, register_study
 
-from ..atomic import write_text
+from ..atomic import save_figure, write_text
 from ..control import (
     TASKS,
     ControlConfig,
+    _pyplot,
     build_net,
     evaluate,
     get_task,
     initial_states,
     load_history,
-    plot_history,
     train,
 )
 
@@ -169,28 +169,81 @@ def summary(rows: list[dict]) -> str:
 
 
 def report(rows: list[dict], out: Path) -> str:
-    """Table (``table.txt``: the summary, then every group) and one plot per task
-    (``stablebptt-TASK.png``)."""
+    """Table (``table.txt``: the summary, then every group) and per task the test-loss
+    curves (``stablebptt-TASK.png``; with several levels, one file per level,
+    ``stablebptt-TASK-LEVEL.png``, and the final loss against the level,
+    ``stablebptt-TASK-levels.png``)."""
     out = Path(out)
     text = summary(rows) + "\n\n" + table(rows)
     write_text(out / "table.txt", text + "\n")
     for task in TASKS:
         mine = [r for r in rows if r["task"] == task]
-        if not mine:
-            continue
-        curves: dict[tuple, list[list[float]]] = {}
-        for r in mine:
-            curves.setdefault((r["level"], r["mode"], r["clip"]), []).append(r["test_history"])
-        histories, labels = [], []
-        for (level, mode, clip), hs in sorted(curves.items(), key=lambda kv: str(kv[0])):
-            n = min(len(h) for h in hs)
-            mean = np.nanmean(np.array([h[:n] for h in hs], dtype=float), axis=0)
-            histories.append([{"epoch": e + 1, "test_loss": v} for e, v in enumerate(mean)])
-            clip_txt = "" if clip == "none" else f", clip {clip}"
-            labels.append(f"{TASKS[task].knob} {level}, {mode}{clip_txt} (n={len(hs)})")
-        plot_history(histories, labels, out / f"stablebptt-{task}.png",
-                     title=f"{task}: test loss, mean over seeds")
+        levels = sorted({r["level"] for r in mine}, key=TASKS[task].levels.index)
+        for level in levels:
+            name = f"stablebptt-{task}" + (f"-{level}" if len(levels) > 1 else "")
+            _plot_curves([r for r in mine if r["level"] == level], out / f"{name}.png")
+        if len(levels) > 1:
+            _plot_levels(mine, levels, out / f"stablebptt-{task}-levels.png")
     return text
+
+
+_COLORS = {"R": "tab:blue", "M": "tab:orange", "S": "tab:green", "N": "tab:purple",
+           "C": "tab:red"}
+_STYLES = {"none": "-", "value": "--", "norm": ":"}
+
+
+def _plot_curves(rows: list[dict], path: Path) -> None:
+    """Test loss over epochs, mean over seeds: colour by mode, line style by clip."""
+    plt = _pyplot()
+    task, level = rows[0]["task"], rows[0]["level"]
+    curves: dict[tuple, list[list[float]]] = {}
+    for r in rows:
+        curves.setdefault((r["mode"], r["clip"]), []).append(r["test_history"])
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    order = {m: i for i, m in enumerate("RMSNC")}
+    for (mode, clip), hs in sorted(curves.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
+        n = min(len(h) for h in hs)
+        mean = np.nanmean(np.array([h[:n] for h in hs], dtype=float), axis=0)
+        clip_txt = "" if clip == "none" else f", clip {clip}"
+        ax.plot(np.arange(1, n + 1), mean, color=_COLORS[mode], ls=_STYLES[clip],
+                label=f"{mode}{clip_txt} (n={len(hs)})")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("test loss")
+    ax.set_title(f"{task}, {TASKS[task].knob.replace('_', ' ')} {level}: test loss, mean over "
+                 "seeds", fontsize=9)
+    ax.legend(fontsize=7, ncol=2)
+    save_figure(fig, path, dpi=110)
+
+
+def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
+    """Final test loss over the untrained one against the level: a panel per clip, a line
+    per mode (mean ± std over seeds)."""
+    plt = _pyplot()
+    clips = [c for c in ("none", "value", "norm") if any(r["clip"] == c for r in rows)]
+    fig, axes = plt.subplots(1, len(clips), figsize=(3.6 * len(clips), 3.4), squeeze=False,
+                             sharey=True)
+    task = rows[0]["task"]
+    for ax, clip in zip(axes[0], clips):
+        for mode in "RMSNC":
+            ratio = [[r["test_loss"] / r["untrained_test_loss"] for r in rows
+                      if (r["level"], r["mode"], r["clip"]) == (level, mode, clip)
+                      and r["test_loss"] is not None and r.get("untrained_test_loss")]
+                     for level in levels]
+            if not any(ratio):
+                continue
+            x = [i for i, v in enumerate(ratio) if v]
+            ax.errorbar(x, [np.mean(ratio[i]) for i in x], yerr=[np.std(ratio[i]) for i in x],
+                        marker="o", capsize=3, label=mode, color=_COLORS[mode])
+        ax.set_xticks(range(len(levels)), [str(v) for v in levels])
+        ax.set_xlabel(TASKS[task].knob.replace("_", " "))
+        ax.set_yscale("log")
+        ax.set_title(f"clip {clip}", fontsize=9)
+    axes[0][0].set_ylabel("final test loss / untrained")
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(f"{task}: final test loss against the level (mean ± std over seeds)",
+                 fontsize=9)
+    save_figure(fig, path, dpi=110)
 
 
 register_study(Study(
