@@ -39,6 +39,7 @@ from ..control import (
     load_history,
     train,
 )
+from ..unroll import CLIPS, FLOWS
 
 _MODES = ("R", "M", "S", "C")
 #: per size: levels per task ("ends" = easiest and hardest), modes, clips, seeds, samples, epochs
@@ -55,7 +56,7 @@ SIZES = {
     "easiest": {"tasks": "easiest", "modes": _MODES, "clips": ("none",), "seeds": 3,
                 "train": 64, "test": 64, "batch": 8,
                 "epochs": {"cartpole": 60, "guidance": 60, "quantum": 20}},
-    "full": {"tasks": "all", "modes": _MODES, "clips": ("none", "value", "norm"), "seeds": 3,
+    "full": {"tasks": "all", "modes": _MODES, "clips": CLIPS, "seeds": 3,
              "train": 256, "test": 256, "batch": 8,
              "epochs": {"cartpole": 16, "guidance": 16, "quantum": 5}},
 }
@@ -124,7 +125,7 @@ def table(rows: list[dict]) -> str:
             ratios.setdefault(key, []).append(loss / r["untrained_test_loss"])
     lines = [f"{'task':<9} {'level':>6} {'mode':<4} {'clip':<5} {'n':>2}  "
              "final test loss (mean ± std)" + ("   / untrained" if ratios else "")]
-    order = {m: i for i, m in enumerate("RMSNC")}
+    order = {m: i for i, m in enumerate(FLOWS)}
     for (task, level, mode, clip), v in sorted(
             groups.items(), key=lambda kv: (list(TASKS).index(kv[0][0]), str(kv[0][1]),
                                             kv[0][3], order[kv[0][2]])):
@@ -143,7 +144,7 @@ def summary(rows: list[dict]) -> str:
     cell = {(r["task"], r["level"], r["clip"], r["mode"], r["seed"]): r for r in rows}
     keys = sorted({k[:3] for k in cell}, key=lambda k: (list(TASKS).index(k[0]),
                                                         TASKS[k[0]].levels.index(k[1]), k[2]))
-    modes = [m for m in "RMSNC" if any(k[3] == m for k in cell)]
+    modes = [m for m in FLOWS if any(k[3] == m for k in cell)]
     lines = [f"{'task':<9} {'level':>6} {'clip':<5} "
              + " ".join(f"{m:<17}" for m in modes) + "  C<R   C<M"]
     for task, level, clip in keys:
@@ -200,7 +201,7 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
     for r in rows:
         curves.setdefault((r["mode"], r["clip"]), []).append(r["test_history"])
     fig, ax = plt.subplots(figsize=(6, 3.8))
-    order = {m: i for i, m in enumerate("RMSNC")}
+    order = {m: i for i, m in enumerate(FLOWS)}
     for (mode, clip), hs in sorted(curves.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
         n = min(len(h) for h in hs)
         mean = np.nanmean(np.array([h[:n] for h in hs], dtype=float), axis=0)
@@ -220,12 +221,12 @@ def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
     """Final test loss over the untrained one against the level: a panel per clip, a line
     per mode (mean ± std over seeds)."""
     plt = _pyplot()
-    clips = [c for c in ("none", "value", "norm") if any(r["clip"] == c for r in rows)]
+    clips = [c for c in CLIPS if any(r["clip"] == c for r in rows)]
     fig, axes = plt.subplots(1, len(clips), figsize=(3.6 * len(clips), 3.4), squeeze=False,
                              sharey=True)
     task = rows[0]["task"]
     for ax, clip in zip(axes[0], clips):
-        for mode in "RMSNC":
+        for mode in FLOWS:
             ratio = [[r["test_loss"] / r["untrained_test_loss"] for r in rows
                       if (r["level"], r["mode"], r["clip"]) == (level, mode, clip)
                       and r["test_loss"] is not None and r.get("untrained_test_loss")]
