@@ -11,7 +11,14 @@ import torch
 
 from adjointsim.solvers.oscillators import Oscillators
 from train.hig import HalfInverseGradients, SolverPhysics, TorchPhysics
-from train.hig_problems import RunConfig, RunExists, laplacian, make_problem, train_run
+from train.hig_problems import (
+    RunConfig,
+    RunExists,
+    laplacian,
+    make_problem,
+    phiflow_noise,
+    train_run,
+)
 
 STEPS = 6
 
@@ -156,6 +163,21 @@ def test_poisson_data_and_laplacian_agree_with_the_solver():
     p = make_problem("poisson", 0, "tiny")
     y, _, target = p.test
     assert torch.equal(y, target) and y.shape == (64, 64)
+
+
+def test_poisson_fields_are_phiflow_noise_on_unit_cells():
+    x = phiflow_noise(np.random.default_rng(0), 200, 8)
+    np.testing.assert_allclose(x.std(axis=1), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(x.mean(axis=1), 0.0, atol=1e-12)
+    # smooth: the 1/k² spectrum puts most of the energy in the lowest modes
+    power = (np.abs(np.fft.fft2(x.reshape(-1, 8, 8))) ** 2).mean(axis=0)
+    assert power[0, 1] > 20 * power[4, 4]
+    # the problem's y is the unit-cell Laplacian of such fields: Δ⁻¹ y has unit std
+    y = make_problem("poisson", 0, "tiny").test[0].numpy()
+    from adjointsim.solvers.poisson import Poisson2D
+
+    x_back = -Poisson2D(n=8, bc="dirichlet", length=9.0).solve(y.reshape(-1, 1, 8, 8))
+    np.testing.assert_allclose(x_back.reshape(len(y), 64).std(axis=1), 1.0, rtol=1e-9)
 
 
 def test_quantum_targets_are_normalised_and_the_loss_is_an_infidelity():
