@@ -124,11 +124,65 @@ def test_tall_jacobians_take_the_direct_svd():
     np.testing.assert_allclose(opt.direction(jac, g).numpy(), lstsq, rtol=1e-10)
 
 
-def test_oversized_jacobian_is_refused_with_its_size_and_the_knob():
+@pytest.mark.parametrize(("decomposition", "what"),
+                         [("svd", "Jacobian would be 12 × 61"),
+                          ("gram", "Gram matrix J Jᵀ would be 12 × 12")])
+def test_oversized_jacobian_is_refused_with_its_size_and_the_knob(decomposition, what):
     _, physics, model, x = small_problem()
-    opt = HalfInverseGradients(model, physics, lambda y, t: y.sum(1), max_jacobian_mb=1e-4)
-    with pytest.raises(MemoryError, match=r"12 × 61 .*max_jacobian_mb.*batch size"):
+    opt = HalfInverseGradients(model, physics, lambda y, t: y.sum(1), max_jacobian_mb=1e-4,
+                               decomposition=decomposition)
+    with pytest.raises(MemoryError, match=what + r" .*max_jacobian_mb.*batch size"):
         opt.step(x, x, x)
+
+
+class _Scaled(torch.nn.Module):
+    """Not a stack of Linear layers: a parameter outside them."""
+
+    def __init__(self):
+        super().__init__()
+        self.lin = torch.nn.Linear(4, STEPS).double()
+        self.scale = torch.nn.Parameter(torch.ones((), dtype=torch.float64))
+
+    def forward(self, x):
+        return self.scale * self.lin(x)
+
+
+class _Twice(torch.nn.Module):
+    """Not a stack of Linear layers: one layer applied twice."""
+
+    def __init__(self):
+        super().__init__()
+        self.a, self.b = torch.nn.Linear(4, 4).double(), torch.nn.Linear(4, STEPS).double()
+
+    def forward(self, x):
+        return self.b(torch.tanh(self.a(torch.tanh(self.a(x)))))
+
+
+@pytest.mark.parametrize("bias", [True, False])
+@pytest.mark.parametrize("act", [torch.nn.Tanh, torch.nn.ReLU, torch.nn.SiLU])
+def test_layer_factors_give_the_gram_matrix_and_pullback_of_the_explicit_jacobian(bias, act):
+    _, physics, _, x = small_problem()
+    torch.manual_seed(3)
+    model = torch.nn.Sequential(torch.nn.Linear(4, 7, bias=bias), act(),
+                                torch.nn.Linear(7, 5), act(),
+                                torch.nn.Linear(5, STEPS, bias=bias)).double()
+    opt = HalfInverseGradients(model, physics, lambda y, t: y.sum(1))
+    y, jac = opt.jacobian(x, x)
+    y2, factors = opt.layer_factors(x, x)
+    assert torch.equal(y, y2) and factors.shape == tuple(jac.shape)
+    gram = jac @ jac.T
+    assert float((factors.gram() - gram).abs().max()) <= 1e-13 * float(gram.abs().max())
+    w = torch.randn(jac.shape[0], dtype=jac.dtype, generator=torch.Generator().manual_seed(0))
+    ref = jac.T @ w
+    assert float((factors.rmatvec(w) - ref).abs().max()) <= 1e-13 * float(ref.abs().max())
+
+
+@pytest.mark.parametrize("model", [_Scaled, _Twice])
+def test_other_models_form_the_jacobian(model):
+    _, physics, _, x = small_problem()
+    opt = HalfInverseGradients(model(), physics, lambda y, t: ((y - t) ** 2).sum(1), tau=1e-3)
+    assert opt.layer_factors(x, x) is None
+    opt.step(x, x, torch.zeros(3, 4, dtype=torch.float64))  # through the explicit J
 
 
 def test_non_finite_jacobian_is_a_clear_error():

@@ -145,6 +145,58 @@ class TorchPhysics:
         return y, vmap(jacrev(single))(f.detach(), context)
 
 
+class LayerFactors:
+    """J of a network whose parameters all sit in ``nn.Linear`` layers, each applied once per
+    sample, kept as per-layer factors instead of a (b·d_y) × |θ| matrix.
+
+    Row (s, i) of J restricted to layer l is δ ⊗ [h, 1]: δ = ∂y_{s,i}/∂z (the layer's output z),
+    h = the layer's input for sample s. Hence J Jᵀ = Σ_l (D_l D_lᵀ) ⊙ (K_l ⊗ 1_{d_y × d_y}) with
+    D_l the rows' δ (b·d_y × n_out) and K_l = H Hᵀ + 1 (b × b; + 1 only with a bias), and Jᵀ w
+    is per layer Eᵀ [H, 1] with E_s = Σ_i w_{s,i} δ_{s,i}. That costs Σ n_out instead of |θ|
+    per Gram entry: 156 against 2956 on the oscillators, 320 against 24896 on Poisson.
+    """
+
+    def __init__(self, layers: list[torch.nn.Linear], deltas: list[torch.Tensor],
+                 inputs: list[torch.Tensor], params: list[torch.Tensor]):
+        self.layers, self.inputs = layers, inputs
+        self.d_y, self.b = deltas[0].shape[:2]
+        self.deltas = deltas  # each (d_y, b, n_out)
+        self.params = params
+        self.shape = (self.b * self.d_y, sum(p.numel() for p in params))
+        self.dtype = deltas[0].dtype
+
+    def isfinite(self) -> torch.Tensor:
+        """Per row of J: are its factors finite."""
+        ok = torch.ones(self.b, self.d_y, dtype=torch.bool)
+        for d, h in zip(self.deltas, self.inputs):
+            ok &= torch.isfinite(d).all(dim=2).T & torch.isfinite(h).all(dim=1)[:, None]
+        return ok.reshape(-1)
+
+    def gram(self) -> torch.Tensor:
+        rows, b, d_y = self.shape[0], self.b, self.d_y
+        gram = torch.zeros(b, d_y, b, d_y, dtype=self.deltas[0].dtype)
+        for layer, d, h in zip(self.layers, self.deltas, self.inputs):
+            rows_d = d.transpose(0, 1).reshape(rows, -1)
+            k = h @ h.T + (1.0 if layer.bias is not None else 0.0)
+            gram += (rows_d @ rows_d.T).view(b, d_y, b, d_y) * k[:, None, :, None]
+        return gram.view(rows, rows)
+
+    def rmatvec(self, w: torch.Tensor) -> torch.Tensor:
+        """Jᵀ w, flat in parameter order."""
+        w = w.view(self.b, self.d_y)
+        parts: dict[int, torch.Tensor] = {}
+        for layer, d, h in zip(self.layers, self.deltas, self.inputs):
+            e = torch.einsum("si,isn->sn", w, d)
+            parts[id(layer.weight)] = e.T @ h
+            if layer.bias is not None:
+                parts[id(layer.bias)] = e.sum(dim=0)
+        return torch.cat([parts[id(p)].reshape(-1) for p in self.params])
+
+
+class _NotLayered(Exception):
+    """The model is not a stack of Linear layers each applied once per sample."""
+
+
 class HalfInverseGradients:
     """HIG (``kappa=0.5``) or Gauss–Newton (``kappa=1``) steps for ``model`` through ``physics``.
 
@@ -185,11 +237,12 @@ class HalfInverseGradients:
     def _params(self) -> dict[str, torch.Tensor]:
         return {k: v.detach() for k, v in self.model.named_parameters()}
 
-    def _check_size(self, rows: int, cols: int, dtype: torch.dtype) -> None:
+    def _check_size(self, rows: int, cols: int, dtype: torch.dtype,
+                    what: str = "Jacobian") -> None:
         mb = rows * cols * torch.finfo(dtype).bits / 8 / 2**20
         if mb > self.max_jacobian_mb:
             raise MemoryError(
-                f"HIG: the Jacobian would be {rows} × {cols} ({dtype}) = {mb:.3g} MB, over "
+                f"HIG: the {what} would be {rows} × {cols} ({dtype}) = {mb:.3g} MB, over "
                 f"max_jacobian_mb = {self.max_jacobian_mb:g}; lower the batch size (rows = "
                 "batch · outputs per sample) or raise max_jacobian_mb"
             )
@@ -219,26 +272,81 @@ class HalfInverseGradients:
         self.timing = {"network": (t1 - t0) + (t3 - t2), "physics": t2 - t1}
         return y, jac
 
-    def direction(self, jac: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    def layer_factors(
+        self, x: torch.Tensor, context: torch.Tensor
+    ) -> tuple[torch.Tensor, LayerFactors] | None:
+        """(y, J as :class:`LayerFactors`), or None when the model is not a stack of Linear
+        layers each applied once per sample (then :meth:`jacobian` forms J)."""
+        params = list(self.model.parameters())
+        layers = [m for m in self.model.modules() if isinstance(m, torch.nn.Linear)]
+        owned = {id(p) for m in layers for p in m.parameters()}
+        if not layers or any(id(p) not in owned for p in params):
+            return None
+        t0 = time.perf_counter()
+        inputs: dict[torch.nn.Module, torch.Tensor] = {}
+        taps: dict[torch.nn.Module, torch.Tensor] = {}
+
+        def tap(module: torch.nn.Module, args: tuple, out: torch.Tensor) -> torch.Tensor:
+            # δ of the layer is the gradient at a zero added to its output
+            if module in inputs or args[0].dim() != 2:
+                raise _NotLayered
+            inputs[module] = args[0].detach()
+            taps[module] = torch.zeros_like(out, requires_grad=True)
+            return out + taps[module]
+
+        handles = [m.register_forward_hook(tap) for m in layers]
+        try:
+            with torch.enable_grad():
+                f = self.model(x)
+        except _NotLayered:
+            return None
+        finally:
+            for h in handles:
+                h.remove()
+        if len(inputs) != len(layers):
+            return None
+        t1 = time.perf_counter()
+        y, jp = self.physics.jacobian(f.detach(), context)
+        t2 = time.perf_counter()
+        rows, cols = jp.shape[0] * jp.shape[1], sum(p.numel() for p in params)
+        if rows > cols:  # a tall J takes the SVD of J itself
+            return None
+        self._check_size(rows, rows, f.dtype, "Gram matrix J Jᵀ")
+        # one batched backward for all d_y output components of every sample
+        deltas = torch.autograd.grad(f, [taps[m] for m in layers],
+                                     grad_outputs=jp.to(f.dtype).transpose(0, 1).contiguous(),
+                                     is_grads_batched=True)
+        factors = LayerFactors(layers, list(deltas), [inputs[m] for m in layers], params)
+        self.timing = {"network": (t1 - t0) + (time.perf_counter() - t2), "physics": t2 - t1}
+        return y, factors
+
+    def direction(self, jac: torch.Tensor | LayerFactors, g: torch.Tensor) -> torch.Tensor:
         """V Σ^(−κ) Uᵀ g over the singular values above τ σ_max (zero if J = 0)."""
-        if not torch.isfinite(jac).all():
-            bad = (~torch.isfinite(jac)).any(dim=1).nonzero().flatten().tolist()
+        finite = jac.isfinite() if isinstance(jac, LayerFactors) else torch.isfinite(jac).all(1)
+        if not finite.all():
+            bad = (~finite).nonzero().flatten().tolist()
             raise FloatingPointError(
                 f"HIG: the Jacobian has non-finite entries in {len(bad)} of its {jac.shape[0]} "
                 f"rows (first: {bad[:5]}); the network or the physics diverged on this batch: "
                 "lower the learning rate, or resume from an earlier checkpoint"
             )
         rows, cols = jac.shape
-        if rows <= cols and self._gram(jac.dtype):
+        if isinstance(jac, LayerFactors):
+            gram, pull = jac.gram(), jac.rmatvec
+        elif rows <= cols and self._gram(jac.dtype):
+            gram, pull = jac @ jac.T, jac.T.__matmul__
+        else:
+            gram = None
+        if gram is not None:
             # J Jᵀ = U Λ Uᵀ, eigenvalues ascending; V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g
-            lam, u = torch.linalg.eigh(jac @ jac.T)
+            lam, u = torch.linalg.eigh(gram)
             s = lam.clamp(min=0.0).sqrt()
             if s.numel() == 0 or s[-1] == 0:
                 return torch.zeros(cols, dtype=jac.dtype)
             # below √(rows·ε) σ_max an eigenvalue is round-off, whatever τ says
             floor = max(self.tau, (rows * torch.finfo(jac.dtype).eps) ** 0.5)
             keep = s > floor * s[-1]
-            return jac.T @ (u[:, keep] @ (s[keep] ** (-self.kappa - 1.0) * (u[:, keep].T @ g)))
+            return pull(u[:, keep] @ (s[keep] ** (-self.kappa - 1.0) * (u[:, keep].T @ g)))
         if rows <= cols:
             # J is wide (b·d_y < |θ|): Jᵀ = QR, then the small SVD Rᵀ = U Σ Wᵀ gives
             # J = U Σ (QW)ᵀ. The same singular values to round-off as a direct SVD, measured
@@ -262,7 +370,10 @@ class HalfInverseGradients:
         self, x: torch.Tensor, context: torch.Tensor, target: torch.Tensor
     ) -> float:
         """One update on the batch; returns the batch's mean loss before the update."""
-        y, jac = self.jacobian(x, context)
+        layered = None
+        if self.decomposition != "svd" and self._gram(next(self.model.parameters()).dtype):
+            layered = self.layer_factors(x, context)
+        y, jac = layered if layered is not None else self.jacobian(x, context)
         t0 = time.perf_counter()
         y = y.detach().requires_grad_(True)
         loss = self.loss(y, target).mean()
