@@ -1,15 +1,18 @@
-"""One half-inverse-gradient update, split into its parts, and its Jacobian against torch.func.
+"""One half-inverse-gradient update, split into its parts, its Jacobian against torch.func,
+and the three routes to its direction side by side.
 
-    python benchmarks/hig.py [--problem oscillators] [--repeats 7]
+    python benchmarks/hig.py [--problem oscillators] [--repeats 7] [--routes P ...] [--batch B]
 
-Prints the median time of one HIG update on the problem's HIG batch, split into the Jacobian's
-network part (per-sample VJPs through the MLP) and physics part (the solver's batched adjoint,
-one call for all b·d_y rows), the decomposition (``svd``: the Gram eigendecomposition or QR + small
-SVD, as ``train.hig`` chooses) and the apply, with the physics share
-(target ≤ 25% on the oscillators). Then J = ∂y/∂θ from ``HalfInverseGradients.jacobian``
-against ``torch.func.jacrev`` through the same RK4 simulator written in plain torch
-(checked equal to 1e-10 in float64; target ≥ 5x). Each repetition runs every candidate once,
-round-robin, so that load on a shared machine hits them alike.
+Prints the median time of one HIG update on the problem's HIG batch, split into the network
+part (the layers' backward for all b·d_y rows), the physics part (the solver's batched adjoint,
+one call for all rows), the decomposition (the Gram eigendecomposition, or QR + small SVD, as
+``train.hig`` chooses) and the apply, with the physics share (target ≤ 25% on the
+oscillators). Then J = ∂y/∂θ from ``HalfInverseGradients.jacobian`` against
+``torch.func.jacrev`` through the same RK4 simulator written in plain torch (checked equal to
+1e-10 in float64; target ≥ 5x). Last, per problem of ``--routes``: the direction of one update
+(derivatives and decomposition) from the Gram matrix of layer factors (the default), from the
+Gram matrix of the explicit J, and from QR + SVD of J (up to 1024 rows). Each repetition runs
+every candidate once, round-robin, so that load on a shared machine hits them alike.
 """
 
 from __future__ import annotations
@@ -56,6 +59,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--problem", default="oscillators", choices=("oscillators", "chain"))
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--routes", nargs="*", default=["oscillators", "quantum", "poisson"],
+                        choices=("oscillators", "quantum", "poisson", "chain"),
+                        help="problems whose update is timed by the three routes")
+    parser.add_argument("--batch", type=int, default=None,
+                        help="batch of the route comparison (default: each problem's HIG batch)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -113,23 +121,65 @@ def main(argv: list[str] | None = None) -> None:
     a, b = statistics.median(jac_ours), statistics.median(jac_torch)
     print(f"Jacobian: ours {1e3 * a:.1f} ms, torch.func.jacrev through plain-torch RK4 "
           f"{1e3 * b:.1f} ms: {b / a:.1f}x (target ≥ 5x: {'met' if b / a >= 5 else 'NOT met'})")
-    # the two decompositions of the same J, side by side
-    g = torch.randn(j_ours.shape[0], dtype=j_ours.dtype, generator=torch.Generator().manual_seed(1))
-    routes = {name: HalfInverseGradients(model, problem.physics, problem.loss,
-                                         tau=settings["tau"], decomposition=name)
-              for name in ("svd", "gram")}
-    times = {name: [] for name in routes}
-    for _ in range(args.repeats):
-        for name, o in routes.items():
-            t0 = time.perf_counter()
-            o.direction(j_ours, g)
-            times[name].append(time.perf_counter() - t0)
-    d_svd, d_gram = (routes[n].direction(j_ours, g) for n in ("svd", "gram"))
-    ts, tg = (statistics.median(times[n]) for n in ("svd", "gram"))
-    print(f"decomposition (τ = {settings['tau']:g}): QR + SVD {1e3 * ts:.1f} ms, Gram "
-          f"eigendecomposition {1e3 * tg:.1f} ms ({ts / tg:.1f}x); updates differ by "
-          f"{float((d_svd - d_gram).norm() / d_svd.norm()):.1e} relative")
+    for name in args.routes:
+        routes(name, args.repeats, args.batch)
 
+
+#: QR + SVD of a larger J takes minutes per update: the comparison leaves it out
+SVD_MAX_ROWS = 1024
+
+
+def routes(name: str, repeats: int, batch: int | None) -> None:
+    """One update of ``name``'s HIG batch by the three routes, round-robin: the Gram matrix
+    from layer factors (the default), from the explicit J, and QR + SVD of the explicit J."""
+    problem = make_problem(name, 0)
+    settings = problem.settings["hig"]
+    torch.manual_seed(0)
+    model = problem.model()
+    batch = int(settings["batch"]) if batch is None else batch
+    x, c, _ = problem.sample(torch.Generator().manual_seed(0), batch)
+
+    def make(decomposition: str) -> HalfInverseGradients:
+        return HalfInverseGradients(model, problem.physics, problem.loss, lr=0.0,
+                                    tau=settings["tau"], decomposition=decomposition,
+                                    max_jacobian_mb=1e5)
+
+    gram, svd = make("gram"), make("svd")
+    deltas: dict[str, torch.Tensor] = {}
+
+    def layers() -> None:
+        deltas["layers"] = gram.direction(gram.layer_factors(x, c)[1], g)
+
+    def explicit() -> None:
+        deltas["explicit"] = gram.direction(gram.jacobian(x, c)[1], g)
+
+    def qr_svd() -> None:
+        deltas["svd"] = svd.direction(svd.jacobian(x, c)[1], g)
+
+    rows = batch * problem.test[2].shape[1]
+    g = torch.randn(rows, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    candidates = {"Gram from layer factors": layers, "Gram from J": explicit}
+    if rows <= SVD_MAX_ROWS:
+        candidates["QR + SVD of J"] = qr_svd
+    times: dict[str, list[float]] = {k: [] for k in candidates}
+    for f in candidates.values():
+        f()  # warm-up
+    for _ in range(repeats):
+        for k, f in candidates.items():
+            t0 = time.perf_counter()
+            f()
+            times[k].append(time.perf_counter() - t0)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    base = med["Gram from layer factors"]
+    print(f"{name}: the direction of one update (batch {x.shape[0]}, {rows} rows of J, "
+          f"τ = {settings['tau']:g}), derivatives and decomposition, median of {repeats}:")
+    for k, v in med.items():
+        print(f"  {k:<24} {1e3 * v:8.1f} ms  {v / base:5.2f}x")
+    ref = deltas.get("svd", deltas["explicit"])
+    for k in [k for k in ("layers", "explicit") if deltas[k] is not ref]:
+        err = float((deltas[k] - ref).norm() / ref.norm())
+        against = "QR + SVD" if "svd" in deltas else "the Gram matrix from J"
+        print(f"  direction from {k} against {against}: {err:.1e} relative")
 
 if __name__ == "__main__":
     main()
