@@ -24,19 +24,32 @@ oscillators b·d_y = 128·4 = 512 vs b·d_f = 128·96 = 12288 (24× fewer); quan
 its Jacobian comes from ``torch.func.jacrev``, :class:`TorchPhysics`). Every problem here has
 d_y ≤ d_f, so reverse mode is the one implemented.
 
-Cost (``python benchmarks/hig.py``, oscillators, batch 128, J 512 × 2956, float64, one thread,
-quiet machine): one update 80 ms = network 5% + physics 20% + decomposition 70% (Gram route)
-+ apply 1%; J alone in 24 ms, 188x faster than ``torch.func.jacrev`` through the same RK4 in
-plain torch.
-The SVD of the wide J is taken as Jᵀ = QR followed by the SVD of the small R.
+Without J. When every parameter sits in an ``nn.Linear`` layer applied once per sample (all
+the networks here), the Gram route never forms J: row (s, i) of J restricted to a layer is
+δ ⊗ [h, 1] (δ: the row's cotangent at the layer's output, from one batched backward over the
+b·d_y physics rows; h: the layer's input), so J Jᵀ and Jᵀ w come from per-layer products
+(:class:`LayerFactors`), at Σ n_out instead of |θ| multiply-adds per Gram entry. Equal to the
+explicit route to 1e-15 relative.
+
+Cost (``python benchmarks/hig.py``, one thread, float64, medians, 2026-11-25, output in
+``docs/bench-hig-2026-11-25.txt``): one oscillators update (batch 128, 512 rows) 95 ms =
+network 2% + physics 22% + decomposition 68% (nearly all of it the eigendecomposition of the
+512 × 512 Gram matrix) + apply 1%. The direction of one update by layer factors against the
+explicit J's Gram matrix and QR + SVD: oscillators 80 ms against 135 and 307; quantum 100
+against 280 and 596; Poisson at batch 4 20 against 241 and 613, at batch 16 380 against 2176
+and 5846, at the paper's batch 64 25.7 s against 50.4 s, where the 4096 × 4096
+eigendecomposition is nearly all of it. J itself (``jacobian``, for the SVD route and for
+other networks) takes 29 ms on the oscillators, 300x faster than ``torch.func.jacrev``
+through the same RK4 in plain torch. The SVD of a wide J is taken as Jᵀ = QR followed by the
+SVD of the small R.
 
 The decomposition (``decomposition=``): ``"svd"`` is the one above, exact to round-off.
 ``"gram"`` takes the eigendecomposition J Jᵀ = U Λ Uᵀ (σ² = λ) of the small Gram matrix and
-applies V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g: 2.7–4× faster (oscillators 0.142 → 0.053 s,
-quantum 0.286 → 0.081 s, Poisson 0.278 → 0.066 s on one thread), but λ carries an absolute
+applies V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g: with layer factors 3.9–30× faster than QR + SVD
+(figures above), but λ carries an absolute
 error of about ε λ_max, so singular values near τ σ_max lose about ε/τ² of relative accuracy:
-against the SVD route the update differs by 7.5e-5 (oscillators, τ = 1e-6), 7.1e-7 (quantum,
-τ = 1e-5) and 3.8e-12 (Poisson, well conditioned), relative. ``"auto"`` (the default) takes
+against the SVD route the direction differs by 9.7e-5 (oscillators, τ = 1e-6), 1.6e-7
+(quantum, τ = 1e-5) and 1e-13 (Poisson, well conditioned), relative. ``"auto"`` (the default) takes
 ``"gram"`` for a wide J whenever τ² ≥ 10³ ε of its dtype (τ ≥ 4.7e-7 in float64), so that the
 dropped directions are resolved; otherwise (the linear chain's τ = 1e-10, float32) the SVD.
 The Gram route never keeps a singular value below √(rows · ε) σ_max (round-off in λ), even
