@@ -198,22 +198,13 @@ def _history_csv(history: list[dict]) -> str:
     return buf.getvalue()
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
              truth_u0: np.ndarray | None) -> None:
     """Fitted against observed states (first batch element and channel) at up to four observed
     steps, and the fitted initial state against the truth when it is known."""
-    from train.atomic import save_figure
+    from train.atomic import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     steps = list(obs)
     shown = steps if len(steps) <= 4 else [steps[int(i)] for i in
                                            np.linspace(0, len(steps) - 1, 4).round()]
@@ -251,9 +242,9 @@ def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
 
 
 def plot_history(path: Path, history: list[dict], title: str) -> None:
-    from train.atomic import save_figure
+    from train.atomic import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
     it = [h["iteration"] for h in history]
     ax.semilogy(it, [max(h["misfit"], 1e-300) for h in history], label="misfit")

@@ -35,6 +35,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the Agg backend: plots are written to files, on machines
+    without a display too. Imported on first use: runs that draw nothing never load it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> None:
     """Lay out a matplotlib figure, write it atomically (format from the suffix, PNG by
     default) and close it."""

@@ -37,7 +37,7 @@ from torch import nn
 from nets.mlp import MLP
 from nets.taylor import jets
 
-from .atomic import save_figure, write_json, write_text
+from .atomic import pyplot, save_figure, write_json, write_text
 from .weighting import Weighting
 
 NU = 0.01 / math.pi
@@ -231,10 +231,7 @@ def compare(out: Path, pinn_seconds: float, dp_iterations: tuple[int, ...] = (30
 
 
 def plot(path: Path, dp: dict, net: nn.Module, prob: BurgersPinn, history: list[dict]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     x = dp["x"]
     with torch.no_grad():

@@ -43,7 +43,7 @@ import adjointsim
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
-from .atomic import atomic_path, save_figure, write_json, write_text
+from .atomic import atomic_path, pyplot, save_figure, write_json, write_text
 from .unroll import CLIPS, FLOWS, GradientFlow
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -416,15 +416,6 @@ def load_history(path: str | Path) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- plots
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def moving_average(y: np.ndarray, k: int = 30) -> np.ndarray:
     """Trailing mean over up to ``k`` epochs (the paper's 30-epoch smoothing)."""
     y = np.asarray(y, dtype=float)
@@ -437,7 +428,7 @@ def moving_average(y: np.ndarray, k: int = 30) -> np.ndarray:
 def plot_history(histories: list[list[dict]], labels: list[str], path: Path,
                  title: str = "") -> None:
     """Test loss over epochs, log scale, raw (faint) and 30-epoch moving average."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.8))
     for h, label in zip(histories, labels):
         e = np.array([r["epoch"] for r in h])
@@ -456,7 +447,7 @@ def plot_history(histories: list[list[dict]], labels: list[str], path: Path,
 def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
                  title: str = "") -> None:
     """One controlled rollout: pole angles; driver and evader paths; |ψ|² over t and x."""
-    plt = _pyplot()
+    plt = pyplot()
     _, (states, controls) = closed_loop(task, net, x0, keep=True)
     xs = torch.stack(states)[:, 0].numpy()  # (n + 1, C, *grid)
     t = np.arange(len(xs)) * task.solver.dt

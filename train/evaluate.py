@@ -22,7 +22,7 @@ import torch
 from adjointsim import NonFiniteInputError, NonFiniteStateError
 from adjointsim.cli import UserError
 
-from .atomic import save_figure
+from .atomic import pyplot, save_figure
 from .data import Dataset, Split
 from .model import NeuralStepper
 
@@ -185,10 +185,7 @@ def plot_rollout(
     """Space–time (1D) or snapshots (2D) of the first rollout against the reference, and the
     error over time of all rollouts (and of the coarse solver alone, if given, until it blows
     up)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path.parent.mkdir(parents=True, exist_ok=True)
     t = min(pred.shape[1], 4 * horizon + 1, PLOT_STEPS)

@@ -59,6 +59,7 @@ from .atomic import (
     RunExists,
     atomic_path,
     finished_result,
+    pyplot,
     save_figure,
     uninterrupted,
     write_json,
@@ -467,10 +468,7 @@ def loss_at(history: list[dict], mark: float) -> float:
 
 def plot_history(curves: dict[str, list[dict]], path: Path, title: str, ax=None) -> None:
     """Test loss against wall-clock (log-log), one curve per label; saves when ``ax`` is None."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig = None
     if ax is None:

@@ -46,6 +46,7 @@ from .atomic import (
     RunExists,
     atomic_path,
     finished_result,
+    pyplot,
     save_figure,
     uninterrupted,
     write_json,
@@ -594,21 +595,12 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
 
 
 # ----------------------------------------------------------------------------- plots
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
              cfg: PinnConfig, phases: list[dict] = ()) -> None:
     """``field.png``: exact solution, prediction, |error|; ``history.png``: each term, each
     weight, the relative L2 error and any learned coefficient over epochs, with the phase
     boundaries dotted."""
-    plt = _pyplot()
+    plt = pyplot()
     with torch.no_grad():
         u = model(problem.grid).reshape(problem.shape).numpy()
     exact = problem.u_grid.reshape(problem.shape).numpy()

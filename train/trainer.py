@@ -35,7 +35,7 @@ from adjointsim.cli import ConfigTypeError, DamagedFileError, UserError
 from nets import DilatedResNet, ResNet, UNet, parameter_count
 
 from . import data as datamod
-from .atomic import atomic_path, save_figure, write_text
+from .atomic import atomic_path, pyplot, save_figure, write_text
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
@@ -491,10 +491,7 @@ def _write_history(history: list[dict], out: Path) -> None:
         writer = csv.DictWriter(f, fieldnames=["iteration", "stage", "m", "lr", "loss", "skipped"])
         writer.writeheader()
         writer.writerows(history)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     it = np.array([h["iteration"] for h in history])
     loss = np.array([h["loss"] for h in history])

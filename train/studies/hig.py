@@ -18,7 +18,7 @@ import torch
 
 from adjointsim.runner import Study, register_study
 
-from ..atomic import save_figure, write_text
+from ..atomic import pyplot, save_figure, write_text
 from ..hig_problems import OPTIMIZERS, PROBLEMS, RunConfig, loss_at, read_history
 from ..hig_problems import train_run as _train_run
 
@@ -139,10 +139,7 @@ def report(rows: list[dict], out: Path) -> str:
 
 def plot(rows: list[dict], out: Path, path: Path) -> None:
     """Test loss against wall-clock, one panel per problem, one curve per optimizer and seed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     problems = [p for p in PROBLEMS if any(r["problem"] == p for r in rows)]
     fig, axes = plt.subplots(1, len(problems), figsize=(4.2 * len(problems), 3.4), squeeze=False)

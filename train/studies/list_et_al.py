@@ -19,7 +19,7 @@ import numpy as np
 from adjointsim.runner import Study, register_study
 
 from .. import data as datamod
-from ..atomic import save_figure, write_text
+from ..atomic import pyplot, save_figure, write_text
 from ..evaluate import TEST_SPLITS, evaluate
 from ..trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 
@@ -159,10 +159,7 @@ def table(rows: list[dict]) -> str:
 
 def write_summary(rows: list[dict], out: Path, horizon: int) -> None:
     write_text(out / "table.txt", table(rows) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     cells: dict[str, list[float]] = {}
     for r in rows:

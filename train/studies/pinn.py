@@ -18,7 +18,7 @@ import torch
 
 from adjointsim.runner import Study, register_study
 
-from ..atomic import save_figure, write_text
+from ..atomic import pyplot, save_figure, write_text
 from ..pinn import REPORTED, PinnConfig, train_run
 
 WEIGHTINGS = ("uniform", "inverse-dirichlet", "max-avg", "fixed")
@@ -116,10 +116,7 @@ COLORS = {"uniform": "tab:red", "inverse-dirichlet": "tab:blue", "max-avg": "tab
 
 
 def _axes():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     return plt.subplots(figsize=(5.5, 4))
 

@@ -27,11 +27,10 @@ import numpy as np
 
 from adjointsim.runner import Study, register_study
 
-from ..atomic import save_figure, write_text
+from ..atomic import pyplot, save_figure, write_text
 from ..control import (
     TASKS,
     ControlConfig,
-    _pyplot,
     build_net,
     evaluate,
     get_task,
@@ -195,7 +194,7 @@ _STYLES = {"none": "-", "value": "--", "norm": ":"}
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
     """Test loss over epochs, mean over seeds: colour by mode, line style by clip."""
-    plt = _pyplot()
+    plt = pyplot()
     task, level = rows[0]["task"], rows[0]["level"]
     curves: dict[tuple, list[list[float]]] = {}
     for r in rows:
@@ -220,7 +219,7 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
 def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
     """Final test loss over the untrained one against the level: a panel per clip, a line
     per mode (mean ± std over seeds)."""
-    plt = _pyplot()
+    plt = pyplot()
     clips = [c for c in CLIPS if any(r["clip"] == c for r in rows)]
     fig, axes = plt.subplots(1, len(clips), figsize=(3.6 * len(clips), 3.4), squeeze=False,
                              sharey=True)
