@@ -158,6 +158,19 @@ class _Twice(torch.nn.Module):
         return self.b(torch.tanh(self.a(torch.tanh(self.a(x)))))
 
 
+class _Tied(torch.nn.Module):
+    """Not a stack of Linear layers: two layers share a weight."""
+
+    def __init__(self):
+        super().__init__()
+        self.a, self.b = torch.nn.Linear(4, 4).double(), torch.nn.Linear(4, 4).double()
+        self.b.weight = self.a.weight
+        self.c = torch.nn.Linear(4, STEPS).double()
+
+    def forward(self, x):
+        return self.c(torch.tanh(self.b(torch.tanh(self.a(x)))))
+
+
 @pytest.mark.parametrize("bias", [True, False])
 @pytest.mark.parametrize("act", [torch.nn.Tanh, torch.nn.ReLU, torch.nn.SiLU])
 def test_layer_factors_give_the_gram_matrix_and_pullback_of_the_explicit_jacobian(bias, act):
@@ -177,7 +190,7 @@ def test_layer_factors_give_the_gram_matrix_and_pullback_of_the_explicit_jacobia
     assert float((factors.rmatvec(w) - ref).abs().max()) <= 1e-13 * float(ref.abs().max())
 
 
-@pytest.mark.parametrize("model", [_Scaled, _Twice])
+@pytest.mark.parametrize("model", [_Scaled, _Twice, _Tied])
 def test_other_models_form_the_jacobian(model):
     _, physics, _, x = small_problem()
     opt = HalfInverseGradients(model(), physics, lambda y, t: ((y - t) ** 2).sum(1), tau=1e-3)

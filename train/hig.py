@@ -187,7 +187,7 @@ class LayerFactors:
 
     def gram(self) -> torch.Tensor:
         rows, b, d_y = self.shape[0], self.b, self.d_y
-        gram = torch.zeros(b, d_y, b, d_y, dtype=self.deltas[0].dtype)
+        gram = torch.zeros(b, d_y, b, d_y, dtype=self.dtype)
         for layer, d, h in zip(self.layers, self.deltas, self.inputs):
             rows_d = d.transpose(0, 1).reshape(rows, -1)
             k = h @ h.T + (1.0 if layer.bias is not None else 0.0)
@@ -292,9 +292,9 @@ class HalfInverseGradients:
         layers each applied once per sample (then :meth:`jacobian` forms J)."""
         params = list(self.model.parameters())
         layers = [m for m in self.model.modules() if isinstance(m, torch.nn.Linear)]
-        owned = {id(p) for m in layers for p in m.parameters()}
-        if not layers or any(id(p) not in owned for p in params):
-            return None
+        owned = [id(p) for m in layers for p in m.parameters()]
+        if not layers or len(set(owned)) < len(owned) or set(owned) != {id(p) for p in params}:
+            return None  # parameters outside Linear layers, or shared by two
         t0 = time.perf_counter()
         inputs: dict[torch.nn.Module, torch.Tensor] = {}
         taps: dict[torch.nn.Module, torch.Tensor] = {}
