@@ -215,10 +215,11 @@ class HalfInverseGradients:
 
     ``physics`` is a :class:`SolverPhysics`, a :class:`TorchPhysics` or anything with the same
     ``__call__``/``jacobian`` pair; ``loss(y, target)`` returns the per-sample losses (b,).
-    ``max_jacobian_mb`` bounds the float J (and so the SVD's input): a batch whose J would be
-    larger is refused before any work. After each :meth:`step`, ``timing`` holds the seconds of
-    its parts: ``network`` and ``physics`` (the two Jacobian factors), ``decomposition`` and
-    ``apply``.
+    ``max_jacobian_mb`` bounds the largest matrix an update forms: J, or on the layer-factor
+    route (the Gram route of a network of Linear layers, :meth:`layer_factors`) the Gram matrix
+    J Jᵀ; a batch over it is refused before the matrix is formed. After each :meth:`step`,
+    ``timing`` holds the seconds of its parts: ``network`` and ``physics`` (the two Jacobian
+    factors), ``decomposition`` (with forming J Jᵀ) and ``apply``.
     """
 
     def __init__(
