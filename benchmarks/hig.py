@@ -131,8 +131,8 @@ SVD_MAX_ROWS = 1024
 
 def routes(name: str, repeats: int, batch: int | None) -> None:
     """The direction of one update of ``name`` (its HIG batch, or ``batch``) by the three routes,
-    round-robin: the Gram matrix
-    from layer factors (the default), from the explicit J, and QR + SVD of the explicit J."""
+    round-robin: the Gram matrix from layer factors (the default), from the explicit J, and
+    QR + SVD of the explicit J."""
     problem = make_problem(name, 0)
     settings = problem.settings["hig"]
     torch.manual_seed(0)
