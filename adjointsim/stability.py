@@ -192,14 +192,11 @@ def report(rows: list[dict], out: Path) -> str:
     """``OUT/stability.md`` (table) and ``OUT/stability.png``: per scheme family, the largest
     stable Δt against the grid size (markers; triangles: stable up to the search cap) and the
     stated limit (dashed)."""
-    from train.atomic import save_figure, write_text
+    from train.atomic import pyplot, save_figure, write_text
 
     text = table(rows)
     write_text(out / "stability.md", text + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     families: dict[str, list[dict]] = {}
     for r in rows:

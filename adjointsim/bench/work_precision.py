@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from train.atomic import save_figure
+from train.atomic import pyplot, save_figure
 
 from ..registry import get
 from ..spectral import fft1d, fft2d
@@ -338,10 +338,7 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 def plot(rows: list[dict], scene: Scene, path: Path) -> None:
     """Error against run time, log-log: colour per scheme, line style per grid."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     schemes = list(dict.fromkeys(r["scheme"] for r in rows))
     grids = sorted({r["n"] for r in rows}, reverse=True)
