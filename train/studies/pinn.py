@@ -116,11 +116,7 @@ COLORS = {"uniform": "tab:red", "inverse-dirichlet": "tab:blue", "max-avg": "tab
 
 
 def _axes():
-    plt = pyplot()
-
-    return plt.subplots(figsize=(5.5, 4))
-
-
+    return pyplot().subplots(figsize=(5.5, 4))
 
 
 def _report(text: str, out: Path, plot_fn, rows: list[dict], name: str) -> str:
