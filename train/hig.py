@@ -348,7 +348,7 @@ class HalfInverseGradients:
         if isinstance(jac, LayerFactors):
             gram, pull = jac.gram(), jac.rmatvec
         elif rows <= cols and self._gram(jac.dtype):
-            gram, pull = jac @ jac.T, jac.T.__matmul__
+            gram, pull = jac @ jac.T, lambda w: jac.T @ w
         else:
             gram = None
         if gram is not None:
