@@ -122,6 +122,13 @@ def test_tall_jacobians_take_the_direct_svd():
     g = torch.rand(24, dtype=torch.float64)
     lstsq = np.linalg.lstsq(jac.numpy(), g.numpy(), rcond=None)[0]
     np.testing.assert_allclose(opt.direction(jac, g).numpy(), lstsq, rtol=1e-10)
+    # the layer-factor route forms the same J from its factors, running the physics once
+    calls = []
+    physics.jacobian = lambda f, c, inner=physics.jacobian: calls.append(1) or inner(f, c)
+    _, factors = opt.layer_factors(x, torch.zeros(4, 0))
+    assert len(calls) == 1
+    np.testing.assert_allclose(factors.dense().numpy(), jac.numpy(), rtol=1e-13)
+    np.testing.assert_allclose(opt.direction(factors, g).numpy(), lstsq, rtol=1e-10)
 
 
 @pytest.mark.parametrize(("decomposition", "what"),
@@ -185,6 +192,7 @@ def test_layer_factors_give_the_gram_matrix_and_pullback_of_the_explicit_jacobia
     assert torch.equal(y, y2) and factors.shape == tuple(jac.shape)
     gram = jac @ jac.T
     assert float((factors.gram() - gram).abs().max()) <= 1e-13 * float(gram.abs().max())
+    assert float((factors.dense() - jac).abs().max()) <= 1e-13 * float(jac.abs().max())
     w = torch.randn(jac.shape[0], dtype=jac.dtype, generator=torch.Generator().manual_seed(0))
     ref = jac.T @ w
     assert float((factors.rmatvec(w) - ref).abs().max()) <= 1e-13 * float(ref.abs().max())

@@ -205,6 +205,17 @@ class LayerFactors:
                 parts[id(layer.bias)] = e.sum(dim=0)
         return torch.cat([parts[id(p)].reshape(-1) for p in self.params])
 
+    def dense(self) -> torch.Tensor:
+        """J itself, (b·d_y) × |θ|: a tall J's own SVD is cheaper than its Gram matrix's."""
+        rows = self.shape[0]
+        parts: dict[int, torch.Tensor] = {}
+        for layer, d, h in zip(self.layers, self.deltas, self.inputs):
+            d = d.transpose(0, 1)  # (b, d_y, n_out): rows sample-major, as in J
+            parts[id(layer.weight)] = (d[..., None] * h[:, None, None, :]).reshape(rows, -1)
+            if layer.bias is not None:
+                parts[id(layer.bias)] = d.reshape(rows, -1)
+        return torch.cat([parts[id(p)] for p in self.params], dim=1)
+
 
 class _NotLayered(Exception):
     """The model is not a stack of Linear layers each applied once per sample."""
@@ -290,7 +301,9 @@ class HalfInverseGradients:
         self, x: torch.Tensor, context: torch.Tensor
     ) -> tuple[torch.Tensor, LayerFactors] | None:
         """(y, J as :class:`LayerFactors`), or None when the model is not a stack of Linear
-        layers each applied once per sample (then :meth:`jacobian` forms J)."""
+        layers each applied once per sample (then :meth:`jacobian` forms J). A tall J
+        (more rows than parameters) is refused by ``max_jacobian_mb`` as J, the Gram matrix
+        otherwise."""
         params = list(self.model.parameters())
         layers = [m for m in self.model.modules() if isinstance(m, torch.nn.Linear)]
         owned = [id(p) for m in layers for p in m.parameters()]
@@ -323,9 +336,10 @@ class HalfInverseGradients:
         y, jp = self.physics.jacobian(f.detach(), context)
         t2 = time.perf_counter()
         rows, cols = jp.shape[0] * jp.shape[1], sum(p.numel() for p in params)
-        if rows > cols:  # a tall J takes the SVD of J itself
-            return None
-        self._check_size(rows, rows, f.dtype, "Gram matrix J Jᵀ")
+        if rows > cols:  # a tall J: formed from these factors, for its own SVD
+            self._check_size(rows, cols, f.dtype)
+        else:
+            self._check_size(rows, rows, f.dtype, "Gram matrix J Jᵀ")
         # one batched backward for all d_y output components of every sample
         deltas = torch.autograd.grad(f, [taps[m] for m in layers],
                                      grad_outputs=jp.to(f.dtype).transpose(0, 1).contiguous(),
@@ -345,6 +359,8 @@ class HalfInverseGradients:
                 "lower the learning rate, or resume from an earlier checkpoint"
             )
         rows, cols = jac.shape
+        if isinstance(jac, LayerFactors) and rows > cols:
+            jac = jac.dense()
         if isinstance(jac, LayerFactors):
             gram, pull = jac.gram(), jac.rmatvec
         elif rows <= cols and self._gram(jac.dtype):

@@ -219,6 +219,8 @@ class Poisson(Problem):
 
     terms = ("res", "bc")
     reference = "res"
+    #: the boundary's edges (axis held fixed, its value): one MSE term each, summed
+    EDGES = ((0, 0.0), (0, 1.0), (1, 0.0), (1, 1.0))
 
     def __init__(self, cfg: PinnConfig):
         self.cfg = cfg
@@ -231,7 +233,7 @@ class Poisson(Problem):
         self.x_col = self.grid[pick]
         self.f_col = self.source(self.x_col)
         edges = []
-        for axis, value in ((0, 0.0), (0, 1.0), (1, 0.0), (1, 1.0)):
+        for axis, value in self.EDGES:
             pts = np.empty((cfg.edge_points, 2))
             pts[:, axis] = value
             pts[:, 1 - axis] = rng.uniform(0.0, 1.0, cfg.edge_points)
@@ -257,7 +259,7 @@ class Poisson(Problem):
     def losses(self, model: Standardized, route: str = "taylor",
                terms: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
         res = model.laplacian(self.x_col, route) - self.f_col
-        bc = ((model(self.x_bc) - self.u_bc) ** 2).view(4, -1).mean(dim=1).sum()
+        bc = ((model(self.x_bc) - self.u_bc) ** 2).view(len(self.EDGES), -1).mean(dim=1).sum()
         return {"res": (res**2).mean(), "bc": bc}
 
     def analytic_weights(self) -> dict[str, float]:
