@@ -21,6 +21,7 @@ from statistics import median
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from train.pinn import PinnConfig, make_problem, make_weighting  # noqa: E402
@@ -60,7 +61,7 @@ def main() -> None:
     print(f"  forward Taylor : {1e3 * t_f:7.2f} ms/epoch  {1 / t_f:7.1f} epochs/s")
     print(f"  nested autograd: {1e3 * t_a:7.2f} ms/epoch  {1 / t_a:7.1f} epochs/s")
     print(f"  speed-up       : {t_a / t_f:.2f}x")
-    floor, inside, lap, rest = split("taylor", args.weighting)
+    floor, inside, lap, rest, elementwise = split("taylor", args.weighting)
     print(f"  matrix products: {1e3 * floor:7.2f} ms/epoch for the forward Taylor route's "
           f"products alone, each replayed on warm buffers ({1e3 * inside:.2f} ms of them in "
           "the forward Laplacian)")
@@ -69,17 +70,23 @@ def main() -> None:
           f"ms/epoch, the rest of the epoch {1e3 * rest:.2f} ms")
     print(f"  3x needs       : the forward Laplacian in ≤ {1e3 * (t_a / 3 - rest):.2f} ms/epoch "
           f"(its products alone: {1e3 * inside:.2f} ms)")
+    low = inside + elementwise + rest
+    print(f"  floor          : {1e3 * low:.2f} ms/epoch = the Laplacian's products "
+          f"{1e3 * inside:.2f} + its tanh and one write of each array its layers must write "
+          f"{1e3 * elementwise:.2f} (warm) + the rest {1e3 * rest:.2f}: at most {t_a / low:.2f}x")
 
 
 _LAPLACIAN = ("_ForwardLaplacian", "_ForwardLaplacianBackward")
 
 
-def split(route: str, weighting: str, epochs: int = 10) -> tuple[float, float, float, float]:
+def split(route: str, weighting: str,
+          epochs: int = 10) -> tuple[float, float, float, float, float]:
     """Seconds per epoch: the route's matrix products alone, all and those inside the forward
     Laplacian's Function (the mm/addmm calls of a profiled round, by shape, each replayed on
     preallocated inputs and outputs, so without allocation or page faults; median of 5
     repeats); then, unprofiled, the forward Laplacian alone (forward and reverse, as in the
-    epoch) and the rest of the epoch."""
+    epoch) and the rest of the epoch; last, the Laplacian's element-wise floor
+    (:func:`elementwise_floor`)."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
@@ -119,7 +126,30 @@ def split(route: str, weighting: str, epochs: int = 10) -> tuple[float, float, f
             torch.autograd.grad((res**2).mean(), params)
         lap.append((time.process_time() - t0) / epochs)
         whole.append(epoch_time(route, epochs, weighting))
-    return floor, inside_floor, median(lap), median(whole) - median(lap)
+    return (floor, inside_floor, median(lap), median(whole) - median(lap),
+            elementwise_floor(model, problem.x_col.shape[0]))
+
+
+def elementwise_floor(model: torch.nn.Module, n: int) -> float:
+    """Seconds per epoch that no fusing of the forward Laplacian's element-wise work removes:
+    tanh of each hidden layer's (n, width) pre-activations, and one write pass (a copy, warm)
+    per array the layers must produce: forward, the D first-order and the second-order
+    streams; reverse, the cotangents of the D + 2 pre-activation streams (the first layer's
+    value stream only: its other streams are the same for every point)."""
+    widths = [m.out_features for m in model.modules() if isinstance(m, torch.nn.Linear)][:-1]
+    dirs = 2  # the Poisson problem's axes
+    arrays = {w: (torch.rand(n, w).numpy(), torch.empty(n, w).numpy()) for w in widths}
+    reps = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(20):
+            for i, w in enumerate(widths):
+                src, dst = arrays[w]
+                np.tanh(src, out=dst)
+                for _ in range(dirs + 1 + (1 if i == 0 else dirs + 2)):
+                    np.copyto(dst, src)
+        reps.append((time.perf_counter() - t0) / 20)
+    return median(reps)
 
 
 if __name__ == "__main__":
