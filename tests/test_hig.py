@@ -302,7 +302,7 @@ def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch)
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     (tmp_path / "checkpoint.pt").write_text("garbage\n")
     cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=2)
-    with pytest.raises(ValueError, match="checkpoint.pt is corrupt or not a checkpoint"):
+    with pytest.raises(ValueError, match="checkpoint.pt is not a readable checkpoint"):
         train_run(cfg, tmp_path, resume=True, progress=False)
 
 

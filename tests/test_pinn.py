@@ -148,8 +148,54 @@ def test_lasting_non_finite_losses_end_the_run_as_diverged(tmp_path, monkeypatch
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(ValueError, match="corrupt or not a checkpoint"):
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
         train_run(_cfg(), tmp_path, resume=True, progress=False)
+
+
+def test_damaged_run_files_are_clear_errors(tmp_path):
+    train_run(_cfg(), tmp_path / "r", progress=False, plot=False)
+    ckpt, result = tmp_path / "r" / "checkpoint.pt", tmp_path / "r" / "result.json"
+    # a flipped bit in a weight: torch loads it, the digest does not
+    weights = torch.load(ckpt, weights_only=False)["model"]
+    raw = bytearray(ckpt.read_bytes())
+    raw[raw.find(weights["mlp.net.0.weight"].numpy().tobytes()) + 1] ^= 1
+    ckpt.write_bytes(bytes(raw))
+    result.unlink()
+    with pytest.raises(ValueError, match="damaged: .*SHA-256.*delete it"):
+        train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
+    result.write_text('{"problem": "pois')
+    with pytest.raises(pinn.RunExists, match="result.json is damaged"):
+        train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
+
+
+def test_a_run_stopped_after_its_last_checkpoint_resumes_to_the_same_result(tmp_path):
+    straight = train_run(_cfg(), tmp_path / "a", progress=False, plot=False)
+    train_run(_cfg(), tmp_path / "b", progress=False, plot=False)
+    (tmp_path / "b" / "result.json").unlink()  # Ctrl-C while plotting: no result yet
+    again = train_run(_cfg(), tmp_path / "b", resume=True, progress=False, plot=False)
+    assert again["phases"] == straight["phases"] and len(again["phases"]) == 1
+    rows = [[{k: v for k, v in h.items() if k != "seconds"}
+             for h in read_history(d / "history.csv")] for d in (tmp_path / "a", tmp_path / "b")]
+    assert rows[0] == rows[1]
+
+
+def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
+    (tmp_path / "theirs").mkdir()
+    (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
+    with pytest.raises(pinn.RunExists, match="not this run's"):
+        train_run(_cfg(), tmp_path / "theirs", progress=False)
+    assert (tmp_path / "theirs" / "config.json").read_text() == '{"precious": true}'
+    (tmp_path / "afile").write_text("")
+    assert cli(["pinn", "poisson", *TINY_ARGS, "--out", str(tmp_path / "afile")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot write the run to --out" in err[0]
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pinn, "train_run", stop)
+    assert cli(["pinn", "poisson", *TINY_ARGS, "--out", str(tmp_path / "new")]) == 130
+    assert "nothing to resume" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("args, message", [
@@ -159,6 +205,8 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     (["poisson", "--weighting", "gradnorm"], "unknown weighting 'gradnorm'"),
     (["poisson", "--epochs", "many"], "--epochs must be int"),
     (["poisson", "--reference", "bc"], "reference must be 'res' or 'max'"),
+    (["poisson", "--seed", "-1"], "seed must be in 0..2**63 - 1"),
+    (["poisson", "--collocation", "1"], "collocation must be ≥ 2"),
 ])
 def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
     assert cli(["pinn", *args, "--out", str(tmp_path / "x")]) == 2

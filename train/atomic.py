@@ -110,6 +110,11 @@ def write_json(path: str | Path, obj: Any) -> None:
     write_text(path, json_text(obj) + "\n")
 
 
+def differing(ours: dict, theirs: dict) -> list[str]:
+    """The keys on which two configurations differ (a key only one has counts)."""
+    return sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
+
+
 class RunExists(FileExistsError):
     """The output directory holds a finished run, or an unfinished one without ``--resume``."""
 
@@ -117,11 +122,18 @@ class RunExists(FileExistsError):
 def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict | None:
     """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
     when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
-    With ``config``, a finished run whose result disagrees with it is ``RunExists`` too."""
+    With ``config``, a finished run whose result disagrees with it is ``RunExists`` too, and so
+    is a directory without a run whose ``config.json`` is not ``config`` (somebody else's)."""
     result_path = out / "result.json"
     if result_path.exists():
         if resume:
-            result = json.loads(result_path.read_text())
+            try:
+                result = json.loads(result_path.read_text())
+            except (ValueError, UnicodeDecodeError) as e:
+                result = e
+            if not isinstance(result, dict):
+                raise RunExists(f"{result_path} is damaged (not a JSON object: {result!s:.80}); "
+                                "delete it to finish the run again from its checkpoint")
             differ = sorted(k for k, v in json.loads(json_text(config or {})).items()
                             if result.get(k) != v)
             if differ:
@@ -129,6 +141,16 @@ def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict
                                 f"(differs in {', '.join(differ)}); choose another --out")
             return result
         raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
-    if (out / "checkpoint.pt").exists() and not resume:
-        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    if (out / "checkpoint.pt").exists():
+        if not resume:
+            raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    elif config is not None and (out / "config.json").exists():
+        try:
+            theirs = json.loads((out / "config.json").read_text())
+        except (ValueError, UnicodeDecodeError):
+            theirs = None
+        if theirs != json.loads(json_text(config)):
+            # not a run of this configuration that stopped before its first checkpoint
+            raise RunExists(f"{out} holds files of something else (its config.json is not this "
+                            "run's); choose another --out")
     return None

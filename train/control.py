@@ -44,6 +44,7 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
 from .atomic import atomic_path, pyplot, save_figure, write_json, write_text
+from .checkpoint import load_checkpoint, save_checkpoint
 from .unroll import CLIPS, FLOWS, GradientFlow
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -389,18 +390,13 @@ def _title(cfg: ControlConfig) -> str:
 
 
 def _load(path: Path) -> dict:
-    try:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # torch raises many types for damaged files
-        raise ValueError(f"{path} is not a readable checkpoint ({type(e).__name__}: {e}); "
-                         "delete it and train again") from None
+    return load_checkpoint(path, ("config", "net", "optimizer", "state", "history"))
 
 
 def _save(path: Path, cfg, net, opt, state, history) -> None:
-    with atomic_path(path) as tmp:
-        torch.save({"config": asdict(cfg), "net": net.state_dict(),
-                    "optimizer": opt.state_dict(), "state": dict(state),
-                    "history": history}, tmp)
+    save_checkpoint({"config": asdict(cfg), "net": net.state_dict(),
+                     "optimizer": opt.state_dict(), "state": dict(state),
+                     "history": history}, path)
 
 
 def _write_history(history: list[dict], out: Path) -> None:

@@ -57,7 +57,7 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from .atomic import (
     RunExists,
-    atomic_path,
+    differing,
     finished_result,
     pyplot,
     save_figure,
@@ -65,6 +65,7 @@ from .atomic import (
     write_json,
     write_text,
 )
+from .checkpoint import load_checkpoint, save_checkpoint
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
@@ -331,14 +332,12 @@ def train_run(
     state = {"wall": 0.0, "updates": 0, "next_eval": 0.0, "history": [], "losses": [],
              "diverged": False}
     if ckpt_path.exists():
-        try:
-            ckpt = torch.load(ckpt_path, weights_only=False)
-        except Exception as e:  # noqa: BLE001 - any unreadable file is reported the same way
-            raise ValueError(f"{ckpt_path} is corrupt or not a checkpoint ({type(e).__name__}: "
-                             f"{e}); delete it to start again") from None
-        if ckpt["config"] != config:
-            raise RunExists(f"{out} holds a run of another configuration {ckpt['config']}; "
-                            "choose another --out")
+        ckpt = load_checkpoint(ckpt_path, ("config", "model", "optimizer", "generator", "state"),
+                               "delete it to start again")
+        differ = differing(config, ckpt["config"])
+        if differ:
+            raise RunExists(f"{out} holds a run of another configuration (differs in "
+                            f"{', '.join(differ)}); choose another --out")
         model.load_state_dict(ckpt["model"])
         if cfg.optimizer == "adam":
             opt.load_state_dict(ckpt["optimizer"])
@@ -354,10 +353,9 @@ def train_run(
         state["next_eval"] = max(0.02, 1.4 * state["wall"])
 
     def checkpoint() -> None:
-        with atomic_path(ckpt_path) as tmp:
-            torch.save({"config": config, "model": model.state_dict(),
-                        "optimizer": opt.state_dict() if cfg.optimizer == "adam" else None,
-                        "generator": gen.get_state(), "state": state}, tmp)
+        save_checkpoint({"config": config, "model": model.state_dict(),
+                         "optimizer": opt.state_dict() if cfg.optimizer == "adam" else None,
+                         "generator": gen.get_state(), "state": state}, ckpt_path)
         _write_history(out / "history.csv", state["history"])
 
     bar = None

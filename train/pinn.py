@@ -39,12 +39,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from adjointsim.cli import DamagedFileError
 from nets.mlp import MLP
 from nets.taylor import jets, laplacian
 
 from .atomic import (
     RunExists,
-    atomic_path,
+    differing,
     finished_result,
     pyplot,
     save_figure,
@@ -52,6 +53,7 @@ from .atomic import (
     write_json,
     write_text,
 )
+from .checkpoint import load_checkpoint, save_checkpoint
 from .weighting import Weighting, canonical_rule
 
 PROBLEMS = ("poisson", "sobolev", "ks-inverse")
@@ -71,6 +73,7 @@ REPORTED = {
 #: consecutive non-finite losses after which a run is given up (full batch: the same
 #: parameters give the same loss, so skipping cannot recover)
 MAX_SKIPS = 10
+CHECKPOINT_KEYS = ("config", "model", "optimizer", "scheduler", "weighting", "state")
 
 
 @dataclass
@@ -123,9 +126,13 @@ class PinnConfig:
             raise ValueError(f"reference must be 'res' or 'max', not {self.reference!r}")
         if self.route not in ROUTES:
             raise ValueError(f"route must be one of {', '.join(ROUTES)}, not {self.route!r}")
-        for name in ("epochs", "depth", "collocation", "edge_points", "every", "log_every"):
+        for name in ("epochs", "depth", "edge_points", "every", "log_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be ≥ 1, not {getattr(self, name)}")
+        if self.collocation < 2:  # the inputs are standardised by the points' spread
+            raise ValueError(f"collocation must be ≥ 2, not {self.collocation}")
+        if not 0 <= self.seed < 2**63:
+            raise ValueError(f"seed must be in 0..2**63 - 1, not {self.seed}")
         if self.width < 0:
             raise ValueError(f"width must be ≥ 1 (or 0: the problem's), not {self.width}")
         if self.collocation > 100 * 100:
@@ -456,19 +463,6 @@ def read_history(path: str | Path) -> list[dict]:
                 for row in csv.DictReader(f)]
 
 
-def _load_checkpoint(path: Path) -> dict:
-    try:
-        ckpt = torch.load(path, weights_only=False)
-    except Exception as e:  # noqa: BLE001 - any unreadable file is reported the same way
-        raise ValueError(f"{path} is corrupt or not a checkpoint ({type(e).__name__}: {e}); "
-                         "delete it to start again") from None
-    keys = {"config", "model", "optimizer", "scheduler", "weighting", "state"}
-    if not isinstance(ckpt, dict) or not keys <= set(ckpt):
-        raise ValueError(f"{path} is not a pinn checkpoint (missing keys); delete it to start "
-                         "again")
-    return ckpt
-
-
 def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: bool = True,
               plot: bool = True) -> dict:
     """Train ``cfg`` in ``out`` (see the module doc); returns the result (also result.json).
@@ -491,23 +485,28 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     state = {"epoch": 0, "history": [], "skipped": 0, "streak": 0, "seconds": 0.0,
              "diverged": False, "phases": []}
     if ckpt_path.exists():
-        ckpt = _load_checkpoint(ckpt_path)
-        if ckpt["config"] != config:
-            raise RunExists(f"{out} holds a run of another configuration {ckpt['config']}; "
-                            "choose another --out")
-        model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        sched.load_state_dict(ckpt["scheduler"])
-        weighting.load_state_dict(ckpt["weighting"])
+        ckpt = load_checkpoint(ckpt_path, CHECKPOINT_KEYS, "delete it to start again")
+        differ = differing(config, ckpt["config"])
+        if differ:
+            raise RunExists(f"{out} holds a run of another configuration (differs in "
+                            f"{', '.join(differ)}); choose another --out")
+        try:
+            model.load_state_dict(ckpt["model"])
+            opt.load_state_dict(ckpt["optimizer"])
+            sched.load_state_dict(ckpt["scheduler"])
+            weighting.load_state_dict(ckpt["weighting"])
+        except (RuntimeError, ValueError, KeyError) as e:
+            raise DamagedFileError(f"{ckpt_path} does not fit this run's model or optimiser "
+                                   f"({type(e).__name__}: {' '.join(str(e).split())[:200]}); "
+                                   "delete it to start again") from None
         state = {"phases": [], **ckpt["state"]}
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "config.json", config)
 
     def checkpoint() -> None:
-        with atomic_path(ckpt_path) as tmp:
-            torch.save({"config": config, "model": model.state_dict(),
-                        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                        "weighting": weighting.state_dict(), "state": state}, tmp)
+        save_checkpoint({"config": config, "model": model.state_dict(),
+                         "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                         "weighting": weighting.state_dict(), "state": state}, ckpt_path)
         _write_history(out / "history.csv", problem.terms, extras, state["history"])
         _write_weights(out / "weights.csv", problem.terms, weighting.history)
 
@@ -549,7 +548,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             if not all(math.isfinite(values[t]) for t in active):
                 state["skipped"] += 1
                 state["streak"] += 1
-                warnings.warn(f"epoch {epoch}: non-finite loss {values}; update skipped",
+                warnings.warn(f"epoch {epoch}: non-finite loss {values}; update skipped "
+                              f"({state['streak']} of at most {MAX_SKIPS} in a row)",
                               RuntimeWarning, stacklevel=2)
                 if state["streak"] >= MAX_SKIPS:
                     state["diverged"] = True
@@ -580,7 +580,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
         if bar is not None:
             bar.close()
     if not state["diverged"]:
-        end_of_phase(state["epoch"])
+        if not state["phases"] or state["phases"][-1]["epoch"] != state["epoch"]:
+            end_of_phase(state["epoch"])  # (not again when resumed after the last checkpoint)
         final = {t: state["phases"][-1][t] for t in problem.terms}
         if all(math.isfinite(v) for v in final.values()):
             log(state["epoch"], final)
@@ -681,8 +682,16 @@ def run_command(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         from adjointsim.cli import Interrupted
 
+        if not (out / "checkpoint.pt").exists():
+            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
+                              "the command again") from None
         raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
             from None
+    except RunExists:
+        raise
+    except OSError as e:  # the run directory cannot be made or written
+        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
+                      "writable directory") from None
     if result["diverged"]:
         print(f"{name} {cfg.weighting}: diverged after {MAX_SKIPS} non-finite losses in a row; "
               f"run in {out}")

@@ -18,11 +18,9 @@ from __future__ import annotations
 import copy
 import csv
 import difflib
-import hashlib
 import json
 import math
 import tomllib
-import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, get_type_hints
@@ -31,11 +29,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from adjointsim.cli import ConfigTypeError, DamagedFileError, UserError
+from adjointsim.cli import ConfigTypeError, UserError
 from nets import DilatedResNet, ResNet, UNet, parameter_count
 
 from . import data as datamod
 from .atomic import atomic_path, pyplot, save_figure, write_text
+from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
@@ -251,78 +250,6 @@ _RECOVER = ("copy an intact run directory over it and continue with --resume, or
             "from scratch with --overwrite")
 
 
-def _digest(payload: Any) -> str:
-    """SHA-256 of a checkpoint's contents: each tensor's dtype, shape and bytes, and the repr of
-    every other value, in order (pickling round-trips both exactly)."""
-    h = hashlib.sha256()
-
-    def walk(x: Any) -> None:
-        if isinstance(x, torch.Tensor):
-            t = x.detach().cpu().contiguous()
-            h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
-            h.update(t.reshape(-1).view(torch.uint8).numpy())
-        elif isinstance(x, list) and all(map(_plain, x)):  # the history: one repr, 3-4x faster
-            h.update(b"R" + repr(x).encode() + b";")
-        elif isinstance(x, dict):
-            h.update(b"{")
-            for k, v in x.items():
-                walk(k)
-                walk(v)
-            h.update(b"}")
-        elif isinstance(x, list | tuple):
-            h.update(b"[" if isinstance(x, list) else b"(")
-            for v in x:
-                walk(v)
-            h.update(b"]")
-        else:
-            h.update(repr(x).encode() + b";")
-
-    walk(payload)
-    return h.hexdigest()
-
-
-def _plain(x: Any) -> bool:
-    """A scalar, or a dict of scalars (no tensor inside)."""
-    if isinstance(x, dict):
-        return all(type(k) in _SCALARS and type(v) in _SCALARS for k, v in x.items())
-    return type(x) in _SCALARS
-
-
-_SCALARS = (int, float, str, bool, type(None))
-
-
-def save_checkpoint(payload: dict, path: str | Path) -> None:
-    """Write atomically, with the digest :func:`load_checkpoint` verifies."""
-    with atomic_path(path) as tmp:
-        torch.save({**payload, "sha256": _digest(payload)}, tmp)
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint and verify its digest; a damaged one gets an error saying what to do."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # torch raises many types for damaged files
-        raise DamagedFileError(
-            f"{path} is not a readable checkpoint ({type(e).__name__}: {e}); {_RECOVER}"
-        ) from None
-    if not isinstance(ckpt, dict) or "model" not in ckpt:
-        raise DamagedFileError(f"{path} is not an adjointsim checkpoint; {_RECOVER}")
-    digest = ckpt.pop("sha256", None)
-    if digest is None:
-        warnings.warn(f"{path} has no digest (written before checkpoints had one), so damage "
-                      "to it cannot be detected; it gets one when the run saves again",
-                      stacklevel=2)
-    elif digest != _digest(ckpt):
-        raise DamagedFileError(
-            f"{path} is damaged: its contents do not match the SHA-256 digest stored with them "
-            f"(a flipped bit on disk or an edited file); {_RECOVER}"
-        )
-    return ckpt
-
-
 def _claim(out: Path, resume: bool, overwrite: bool) -> None:
     """Refuse a directory holding another run unless told to resume or overwrite it."""
     if resume and overwrite:
@@ -333,7 +260,7 @@ def _claim(out: Path, resume: bool, overwrite: bool) -> None:
     what = "a run that saved no checkpoint yet"
     if ckpt_path.exists():
         try:
-            state = load_checkpoint(ckpt_path)["state"]
+            state = load_checkpoint(ckpt_path, recover=_RECOVER)["state"]
             what = (f"a finished run ({state['total']} iterations)" if state.get("finished") else
                     f"an unfinished run (stopped after {state['total']} iterations)")
         except (UserError, KeyError):
@@ -375,7 +302,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     history: list[dict] = []
     ckpt_path = out / "checkpoint.pt"
     if resume and ckpt_path.exists():
-        ckpt = load_checkpoint(ckpt_path)
+        ckpt = load_checkpoint(ckpt_path, recover=_RECOVER)
         # options added since the checkpoint was written take their defaults
         theirs = asdict(TrainConfig()) | ckpt["config"]
         ours = asdict(cfg) | {"max_iterations": theirs["max_iterations"]}
