@@ -213,6 +213,8 @@ def test_bad_inputs_name_the_problem():
         control.ControlConfig.load(epochs="ten")
     with pytest.raises(ValueError, match="lr must be a finite number > 0, not inf"):
         control.ControlConfig.load(lr=float("inf"))
+    with pytest.raises(ValueError, match=r"seed must be in 0..2\*\*63 - 1, not -1"):
+        control.ControlConfig.load(seed=-1)
 
 
 def test_toml_config(tmp_path):
@@ -260,6 +262,36 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert "--poles applies to cartpole, not guidance" in capsys.readouterr().err
     assert cli(["control", "cartpole", "--mode", "X", "--out", str(tmp_path / "x")]) == 2
     assert "unknown mode 'X'; choose from R, M, S, N, C" in capsys.readouterr().err
+
+
+def test_cli_keeps_other_files_and_tells_how_to_continue(tmp_path, capsys, monkeypatch):
+    args = ["control", "cartpole", "--epochs", "1", "--train", "4", "--test", "4", "--batch",
+            "4", "--no-progress", "--dtype", "float64", "--out"]
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "config.json").write_text('{"owner": "someone else"}')
+    assert cli([*args, str(theirs)]) == 2
+    assert "holds files of something else" in capsys.readouterr().err
+    assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
+    done = tmp_path / "done"
+    assert cli([*args, str(done)]) == 0
+    (done / "checkpoint.pt").unlink()
+    assert cli([*args, str(done), "--seed", "5"]) == 2
+    assert "finished run without its checkpoint" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("")
+    assert cli([*args, str(tmp_path / "afile")]) == 2
+    assert "cannot write the run to --out" in capsys.readouterr().err
+    real = control.save_checkpoint
+
+    def stop(*a, **kw):  # Ctrl-C right after the first checkpoint
+        real(*a, **kw)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(control, "save_checkpoint", stop)
+    assert cli([*args, str(tmp_path / "stopped")]) == 130
+    assert "continue with --resume --out" in capsys.readouterr().err
+    monkeypatch.setattr(control, "save_checkpoint", real)
+    assert cli([*args, str(tmp_path / "stopped"), "--resume"]) == 0
 
 
 def test_study_grids():

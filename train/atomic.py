@@ -119,6 +119,33 @@ class RunExists(FileExistsError):
     """The output directory holds a finished run, or an unfinished one without ``--resume``."""
 
 
+def read_result(path: Path) -> dict:
+    """A finished run's ``result.json``; a damaged one is ``RunExists`` saying what to do."""
+    try:
+        result = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        result = e
+    if not isinstance(result, dict):
+        raise RunExists(f"{path} is damaged (not a JSON object: {result!s:.80}); delete it to "
+                        "finish the run again from its checkpoint")
+    return result
+
+
+def refuse_foreign(out: Path, config: dict) -> None:
+    """``RunExists`` when ``out`` holds a ``config.json`` that is not ``config``: somebody
+    else's files, not a run of this configuration stopped before its first checkpoint."""
+    path = out / "config.json"
+    if not path.exists():
+        return
+    try:
+        theirs = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError):
+        theirs = None
+    if theirs != json.loads(json_text(config)):
+        raise RunExists(f"{out} holds files of something else (its config.json is not this "
+                        "run's); choose another --out")
+
+
 def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict | None:
     """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
     when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
@@ -127,13 +154,7 @@ def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict
     result_path = out / "result.json"
     if result_path.exists():
         if resume:
-            try:
-                result = json.loads(result_path.read_text())
-            except (ValueError, UnicodeDecodeError) as e:
-                result = e
-            if not isinstance(result, dict):
-                raise RunExists(f"{result_path} is damaged (not a JSON object: {result!s:.80}); "
-                                "delete it to finish the run again from its checkpoint")
+            result = read_result(result_path)
             differ = sorted(k for k, v in json.loads(json_text(config or {})).items()
                             if result.get(k) != v)
             if differ:
@@ -144,13 +165,6 @@ def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict
     if (out / "checkpoint.pt").exists():
         if not resume:
             raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
-    elif config is not None and (out / "config.json").exists():
-        try:
-            theirs = json.loads((out / "config.json").read_text())
-        except (ValueError, UnicodeDecodeError):
-            theirs = None
-        if theirs != json.loads(json_text(config)):
-            # not a run of this configuration that stopped before its first checkpoint
-            raise RunExists(f"{out} holds files of something else (its config.json is not this "
-                            "run's); choose another --out")
+    elif config is not None:
+        refuse_foreign(out, config)
     return None

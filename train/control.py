@@ -30,6 +30,7 @@ import json
 import math
 import time
 import tomllib
+import warnings
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -43,7 +44,16 @@ import adjointsim
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
-from .atomic import atomic_path, pyplot, save_figure, write_json, write_text
+from .atomic import (
+    RunExists,
+    atomic_path,
+    pyplot,
+    read_result,
+    refuse_foreign,
+    save_figure,
+    write_json,
+    write_text,
+)
 from .checkpoint import load_checkpoint, save_checkpoint
 from .unroll import CLIPS, FLOWS, GradientFlow
 
@@ -235,7 +245,7 @@ class ControlConfig:
             try:
                 with open(path, "rb") as f:
                     values.update(tomllib.load(f))
-            except tomllib.TOMLDecodeError as e:
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
                 raise ValueError(f"{path} is not valid TOML: {e}") from None
             except OSError as e:
                 raise ValueError(f"cannot read config {path}: {e.strerror}") from None
@@ -275,6 +285,8 @@ class ControlConfig:
             raise ValueError(f"batch ({self.batch}) must not exceed train ({self.train})")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr must be a finite number > 0, not {self.lr}")
+        if not 0 <= self.seed < 2**63:
+            raise ValueError(f"seed must be in 0..2**63 - 1, not {self.seed}")
 
 
 # ----------------------------------------------------------------------------- training
@@ -306,7 +318,12 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     state = {"epoch": 0, "finished": False}
     history: list[dict] = []
-    if ckpt_path.exists():
+    if not ckpt_path.exists():
+        if (out / "result.json").exists():
+            raise RunExists(f"{out} holds a finished run without its checkpoint; choose "
+                            "another --out")
+        refuse_foreign(out, asdict(cfg))
+    else:
         ckpt = _load(ckpt_path)
         # the epoch count may grow; where the run lives and how many threads it uses may change
         differ = sorted(k for k, v in asdict(cfg).items()
@@ -323,7 +340,7 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
             if not resume:
                 raise ValueError(f"{out} holds a finished run; choose another --out "
                                  "(or delete it to train again)")
-            return json.loads((out / "result.json").read_text())
+            return read_result(out / "result.json")
         if not resume:
             raise ValueError(f"{out} holds an unfinished run; continue it with --resume or "
                              "choose another --out")
@@ -379,9 +396,14 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
     result = {**asdict(cfg), "level": cfg.level, "test_loss": history[-1]["test_loss"],
               "train_loss": history[-1]["train_loss"], "parameters": sum(p.numel() for p in params),
               "seconds": float(sum(h["seconds"] for h in history))}
-    write_json(out / "result.json", result)
+    # the plots first: a run stopped while plotting has no result.json and resumes to them
     plot_history([history], [f"{cfg.mode}"], out / "test_loss.png", title=_title(cfg))
-    plot_rollout(task, net, x_test[:1], out / "rollout.png", title=_title(cfg))
+    try:
+        plot_rollout(task, net, x_test[:1], out / "rollout.png", title=_title(cfg))
+    except (NonFiniteStateError, NonFiniteInputError) as e:
+        warnings.warn(f"no rollout.png: the controlled rollout is not finite ({e})",
+                      RuntimeWarning, stacklevel=2)
+    write_json(out / "result.json", result)
     return result
 
 
@@ -528,7 +550,23 @@ def run_command(args) -> int:
     n = sum(p.numel() for p in task.net().parameters())
     print(f"{cfg.task} ({task.knob} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "
           f"{n:,} parameters", flush=True)
-    result = train(cfg, resume=args.resume, progress=not args.no_progress)
-    print(f"final test loss {result['test_loss']:.4e}; run in {cfg.out} "
-          "(history.csv, test_loss.png, rollout.png)")
+    out = Path(cfg.out)
+    try:
+        result = train(cfg, resume=args.resume, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        from adjointsim.cli import Interrupted
+
+        if not (out / "checkpoint.pt").exists():
+            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
+                              "the command again") from None
+        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
+            from None
+    except RunExists:
+        raise
+    except OSError as e:  # the run directory cannot be made or written
+        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
+                      "writable directory") from None
+    loss = result["test_loss"]
+    loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
+    print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")
     return 0
