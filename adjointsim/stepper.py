@@ -55,7 +55,7 @@ class NonFiniteStateError(FloatingPointError):
 
 
 class NonFiniteInputError(ValueError):
-    """A state handed to a solver already holds NaN or Inf."""
+    """A state or controls handed to a solver already hold NaN or Inf."""
 
 
 @dataclass(frozen=True)
@@ -338,7 +338,7 @@ class Stepper:
                 "cast them to the state's dtype"
             )
         if not _all_finite(c):
-            raise ValueError(f"{self.name}: controls contain non-finite values")
+            raise NonFiniteInputError(f"{self.name}: controls contain non-finite values")
         return np.ascontiguousarray(c)
 
     def _check_cotangents(

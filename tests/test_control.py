@@ -271,7 +271,7 @@ def test_cli_keeps_other_files_and_tells_how_to_continue(tmp_path, capsys, monke
     theirs.mkdir()
     (theirs / "config.json").write_text('{"owner": "someone else"}')
     assert cli([*args, str(theirs)]) == 2
-    assert "holds files of something else" in capsys.readouterr().err
+    assert "holds another run or other files" in capsys.readouterr().err
     assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
     done = tmp_path / "done"
     assert cli([*args, str(done)]) == 0

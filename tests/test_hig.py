@@ -17,6 +17,7 @@ from train.hig_problems import (
     laplacian,
     make_problem,
     phiflow_noise,
+    read_history,
     train_run,
 )
 
@@ -300,10 +301,26 @@ def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch)
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
-    (tmp_path / "checkpoint.pt").write_text("garbage\n")
     cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=2)
+    train_run(cfg, tmp_path, progress=False, plot=False)
+    (tmp_path / "result.json").unlink()
+    (tmp_path / "checkpoint.pt").write_text("garbage\n")
     with pytest.raises(ValueError, match="checkpoint.pt is not a readable checkpoint"):
         train_run(cfg, tmp_path, resume=True, progress=False)
+    (tmp_path / "config.json").unlink()  # not this run's files: refused before reading them
+    with pytest.raises(RunExists, match="holds other files and no run's config.json"):
+        train_run(cfg, tmp_path, resume=True, progress=False)
+
+
+def test_a_run_stopped_after_its_last_checkpoint_resumes_without_a_second_row(tmp_path):
+    cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=3)
+    first = train_run(cfg, tmp_path, progress=False, plot=False)
+    rows = read_history(tmp_path / "history.csv")
+    (tmp_path / "result.json").unlink()  # Ctrl-C while plotting: no result yet
+    again = train_run(cfg, tmp_path, resume=True, progress=False, plot=False)
+    assert str(read_history(tmp_path / "history.csv")) == str(rows) and again == first
+    with pytest.raises(ValueError, match=r"seed must be in 0..2\*\*63 - 1, not -1"):
+        RunConfig("chain", "hig", seed=-1, budget=1.0).validate()
 
 
 def test_cli_runs_and_refuses_in_one_line(tmp_path, capsys):

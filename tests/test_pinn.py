@@ -111,7 +111,7 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     monkeypatch.setattr(pinn.Poisson, "losses", real)
     with pytest.raises(pinn.RunExists, match="--resume"):
         train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
-    with pytest.raises(pinn.RunExists, match="another configuration"):
+    with pytest.raises(pinn.RunExists, match="another run .*differs in seed"):
         train_run(_cfg(weighting="maxavg", seed=1), tmp_path / "b", resume=True, progress=False)
     again = train_run(_cfg(weighting="maxavg"), tmp_path / "b", resume=True, progress=False,
                       plot=False)
@@ -147,6 +147,8 @@ def test_lasting_non_finite_losses_end_the_run_as_diverged(tmp_path, monkeypatch
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    train_run(_cfg(), tmp_path, progress=False, plot=False)
+    (tmp_path / "result.json").unlink()
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="not a readable checkpoint"):
         train_run(_cfg(), tmp_path, resume=True, progress=False)
@@ -182,7 +184,7 @@ def test_a_run_stopped_after_its_last_checkpoint_resumes_to_the_same_result(tmp_
 def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
     (tmp_path / "theirs").mkdir()
     (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
-    with pytest.raises(pinn.RunExists, match="not this run's"):
+    with pytest.raises(pinn.RunExists, match="another run or other files .*differs in"):
         train_run(_cfg(), tmp_path / "theirs", progress=False)
     assert (tmp_path / "theirs" / "config.json").read_text() == '{"precious": true}'
     (tmp_path / "afile").write_text("")

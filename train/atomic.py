@@ -132,18 +132,46 @@ def read_result(path: Path) -> dict:
 
 
 def refuse_foreign(out: Path, config: dict) -> None:
-    """``RunExists`` when ``out`` holds a ``config.json`` that is not ``config``: somebody
-    else's files, not a run of this configuration stopped before its first checkpoint."""
+    """``RunExists`` when ``out`` holds somebody else's files: a ``config.json`` that is not
+    ``config`` (another run, or not a run), or files but no ``config.json`` at all."""
     path = out / "config.json"
     if not path.exists():
+        if out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir()):
+            raise RunExists(f"{out} holds other files and no run's config.json; choose a new "
+                            "or empty --out")
         return
     try:
         theirs = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError):
         theirs = None
-    if theirs != json.loads(json_text(config)):
-        raise RunExists(f"{out} holds files of something else (its config.json is not this "
-                        "run's); choose another --out")
+    ours = json.loads(json_text(config))
+    if theirs != ours:
+        what = (f"differs in {', '.join(differing(ours, theirs))}" if isinstance(theirs, dict)
+                else "is not a run's")
+        raise RunExists(f"{out} holds another run or other files (its config.json {what}); "
+                        "choose another --out")
+
+
+@contextmanager
+def run_errors(out: Path) -> Iterator[None]:
+    """How a run's Ctrl-C and file errors reach its command's user: whether ``--resume``
+    applies (a checkpoint exists) or the command is simply run again, and that ``--out``
+    cannot be written, naming it."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        from adjointsim.cli import Interrupted
+
+        if not (out / "checkpoint.pt").exists():
+            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
+                              "the command again") from None
+        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
+            from None
+    except RunExists:
+        raise
+    except OSError as e:  # the run directory cannot be made or written
+        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
+                      "writable directory") from None
 
 
 def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict | None:
@@ -162,9 +190,8 @@ def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict
                                 f"(differs in {', '.join(differ)}); choose another --out")
             return result
         raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
-    if (out / "checkpoint.pt").exists():
-        if not resume:
-            raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
-    elif config is not None:
+    if config is not None:
         refuse_foreign(out, config)
+    if (out / "checkpoint.pt").exists() and not resume:
+        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
     return None

@@ -79,8 +79,8 @@ def load_checkpoint(path: str | Path, keys: Iterable[str] = ("model",),
         ) from None
     if not isinstance(ckpt, dict) or not set(keys) <= set(ckpt):
         missing = sorted(set(keys) - set(ckpt)) if isinstance(ckpt, dict) else sorted(keys)
-        raise DamagedFileError(f"{path} is not an adjointsim checkpoint (it lacks "
-                               f"{', '.join(missing)}); {recover}")
+        raise DamagedFileError(f"{path} is not a checkpoint of this command's runs (it lacks "
+                               f"{', '.join(missing)}); choose another --out, or {recover}")
     digest = ckpt.pop("sha256", None)
     if digest is None:
         warnings.warn(f"{path} has no digest (written before checkpoints had one), so damage "

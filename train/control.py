@@ -50,6 +50,7 @@ from .atomic import (
     pyplot,
     read_result,
     refuse_foreign,
+    run_errors,
     save_figure,
     write_json,
     write_text,
@@ -551,21 +552,8 @@ def run_command(args) -> int:
     print(f"{cfg.task} ({task.knob} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "
           f"{n:,} parameters", flush=True)
     out = Path(cfg.out)
-    try:
+    with run_errors(out):
         result = train(cfg, resume=args.resume, progress=not args.no_progress)
-    except KeyboardInterrupt:
-        from adjointsim.cli import Interrupted
-
-        if not (out / "checkpoint.pt").exists():
-            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
-                              "the command again") from None
-        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
-            from None
-    except RunExists:
-        raise
-    except OSError as e:  # the run directory cannot be made or written
-        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
-                      "writable directory") from None
     loss = result["test_loss"]
     loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
     print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")

@@ -60,6 +60,7 @@ from .atomic import (
     differing,
     finished_result,
     pyplot,
+    run_errors,
     save_figure,
     uninterrupted,
     write_json,
@@ -287,6 +288,8 @@ class RunConfig:
                              f"not {self.budget!r}")
         if self.max_updates is not None and self.max_updates < 1:
             raise ValueError(f"max_updates must be ≥ 1, not {self.max_updates}")
+        if not 0 <= self.seed < 2**63:
+            raise ValueError(f"seed must be in 0..2**63 - 1, not {self.seed}")
 
 
 HISTORY_FIELDS = ("update", "wall_s", "train_loss", "test_loss")
@@ -376,7 +379,8 @@ def train_run(
     except KeyboardInterrupt:
         checkpoint()
         raise
-    evaluate()
+    if not state["history"] or state["history"][-1]["update"] != state["updates"]:
+        evaluate()  # (not again when resumed after the last checkpoint)
     if bar is not None:
         bar.close()
     checkpoint()
@@ -388,7 +392,7 @@ def train_run(
         "test_loss": final["test_loss"] if math.isfinite(final["test_loss"]) else None,
         "diverged": state["diverged"],
     }
-    if plot:
+    if plot:  # before result.json: a run stopped while plotting resumes to the plot
         plot_history({cfg.optimizer: state["history"]}, out / "loss.png",
                      f"{cfg.problem}, seed {cfg.seed}")
     write_json(result_path, result)
@@ -448,6 +452,8 @@ def _loop(cfg, problem, settings, model, opt, gen, state, evaluate, checkpoint, 
             state["updates"] += 1
             if math.isfinite(value):
                 state["losses"].append(value)
+            else:  # the network already left the physics' finite range: it ends here too
+                state["diverged"] = True
         if bar is not None:
             bar.update(round(state["wall"], 1) - bar.n)
         if time.monotonic() - last_save > 30.0:
@@ -506,7 +512,8 @@ def main(args: argparse.Namespace) -> int:
     cfg = RunConfig(args.problem, args.optimizer, args.seed, budget,
                     max_updates=args.max_updates)
     try:
-        result = train_run(cfg, out, resume=args.resume)
+        with run_errors(out):
+            result = train_run(cfg, out, resume=args.resume)
     except (RunExists, ValueError, MemoryError) as e:
         print(f"adjointsim hig: {e}", file=sys.stderr)
         return 2

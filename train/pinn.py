@@ -48,6 +48,7 @@ from .atomic import (
     differing,
     finished_result,
     pyplot,
+    run_errors,
     save_figure,
     uninterrupted,
     write_json,
@@ -677,21 +678,8 @@ def run_command(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
     out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
-    try:
+    with run_errors(out):
         result = train_run(cfg, out, resume=args.resume, progress=args.progress)
-    except KeyboardInterrupt:
-        from adjointsim.cli import Interrupted
-
-        if not (out / "checkpoint.pt").exists():
-            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
-                              "the command again") from None
-        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
-            from None
-    except RunExists:
-        raise
-    except OSError as e:  # the run directory cannot be made or written
-        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
-                      "writable directory") from None
     if result["diverged"]:
         print(f"{name} {cfg.weighting}: diverged after {MAX_SKIPS} non-finite losses in a row; "
               f"run in {out}")
