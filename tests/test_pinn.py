@@ -165,9 +165,10 @@ def test_damaged_run_files_are_clear_errors(tmp_path):
     result.unlink()
     with pytest.raises(ValueError, match="damaged: .*SHA-256.*delete it"):
         train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
-    result.write_text('{"problem": "pois')
-    with pytest.raises(pinn.RunExists, match="result.json is damaged"):
-        train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
+    for text in ('{"problem": "pois', "[1, 2]", "{}"):
+        result.write_text(text)
+        with pytest.raises(pinn.RunExists, match="result.json is damaged"):
+            train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
 
 
 def test_a_run_stopped_after_its_last_checkpoint_resumes_to_the_same_result(tmp_path):

@@ -14,7 +14,7 @@ import math
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -174,17 +174,23 @@ def run_errors(out: Path) -> Iterator[None]:
                       "writable directory") from None
 
 
-def finished_result(out: Path, resume: bool, config: dict | None = None) -> dict | None:
+def finished_result(out: Path, resume: bool, config: dict | None = None,
+                    keys: Iterable[str] = ()) -> dict | None:
     """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
     when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
     With ``config``, a finished run whose result disagrees with it is ``RunExists`` too, and so
-    is a directory without a run whose ``config.json`` is not ``config`` (somebody else's)."""
+    is a directory without a run whose ``config.json`` is not ``config`` (somebody else's).
+    A result without ``config``'s keys and ``keys`` is damaged."""
     result_path = out / "result.json"
     if result_path.exists():
         if resume:
             result = read_result(result_path)
-            differ = sorted(k for k, v in json.loads(json_text(config or {})).items()
-                            if result.get(k) != v)
+            ours = json.loads(json_text(config or {}))
+            missing = [k for k in (*ours, *keys) if k not in result]
+            if missing:
+                raise RunExists(f"{result_path} is damaged (it lacks {', '.join(missing)}); "
+                                "delete it to finish the run again from its checkpoint")
+            differ = sorted(k for k, v in ours.items() if result.get(k) != v)
             if differ:
                 raise RunExists(f"{out} holds a finished run of another configuration "
                                 f"(differs in {', '.join(differ)}); choose another --out")

@@ -322,7 +322,7 @@ def train_run(
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
     config = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
-    finished = finished_result(out, resume, config)
+    finished = finished_result(out, resume, config, ("wall_s", "updates", "test_loss"))
     if finished is not None:
         return finished
     out.mkdir(parents=True, exist_ok=True)

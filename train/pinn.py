@@ -75,6 +75,7 @@ REPORTED = {
 #: parameters give the same loss, so skipping cannot recover)
 MAX_SKIPS = 10
 CHECKPOINT_KEYS = ("config", "model", "optimizer", "scheduler", "weighting", "state")
+RESULT_KEYS = ("rel_l2", "diverged", "skipped", "seconds", "weights", "coefficients", "phases")
 
 
 @dataclass
@@ -473,7 +474,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     config = asdict(cfg)
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    finished = finished_result(out, resume, config)
+    finished = finished_result(out, resume, config, RESULT_KEYS)
     if finished is not None:
         return finished
     model = problem.model()
