@@ -9,6 +9,7 @@ import torch
 
 from adjointsim.cli import main as cli
 from train import pinn
+from train.atomic import RunExists
 from train.pinn import PinnConfig, make_problem, read_history, train_run
 
 TINY = {"width": 6, "depth": 2, "collocation": 40, "edge_points": 6, "log_every": 2}
@@ -65,11 +66,11 @@ def test_run_writes_history_plots_and_refuses_to_overwrite(tmp_path):
     assert refreshes[-1]["spread/res"] > 0
     for name in ("field.png", "history.png"):
         assert (out / name).stat().st_size > 1000
-    with pytest.raises(pinn.RunExists, match="finished run"):
+    with pytest.raises(RunExists, match="finished run"):
         train_run(_cfg(weighting="id"), out, progress=False)
     assert train_run(_cfg(weighting="id"), out, resume=True, progress=False) == result
     # resuming it under another configuration does not pass its result off as the new one's
-    with pytest.raises(pinn.RunExists, match="differs in epochs"):
+    with pytest.raises(RunExists, match="differs in epochs"):
         train_run(_cfg(weighting="id", epochs=3), out, resume=True, progress=False)
 
 
@@ -109,9 +110,9 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
     monkeypatch.setattr(pinn.Poisson, "losses", real)
-    with pytest.raises(pinn.RunExists, match="--resume"):
+    with pytest.raises(RunExists, match="--resume"):
         train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
-    with pytest.raises(pinn.RunExists, match="another run .*differs in seed"):
+    with pytest.raises(RunExists, match="another run .*differs in seed"):
         train_run(_cfg(weighting="maxavg", seed=1), tmp_path / "b", resume=True, progress=False)
     again = train_run(_cfg(weighting="maxavg"), tmp_path / "b", resume=True, progress=False,
                       plot=False)
@@ -167,7 +168,7 @@ def test_damaged_run_files_are_clear_errors(tmp_path):
         train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
     for text in ('{"problem": "pois', "[1, 2]", "{}"):
         result.write_text(text)
-        with pytest.raises(pinn.RunExists, match="result.json is damaged"):
+        with pytest.raises(RunExists, match="result.json is damaged"):
             train_run(_cfg(), tmp_path / "r", resume=True, progress=False)
 
 
@@ -185,7 +186,7 @@ def test_a_run_stopped_after_its_last_checkpoint_resumes_to_the_same_result(tmp_
 def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
     (tmp_path / "theirs").mkdir()
     (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
-    with pytest.raises(pinn.RunExists, match="another run or other files .*differs in"):
+    with pytest.raises(RunExists, match="another run or other files .*differs in"):
         train_run(_cfg(), tmp_path / "theirs", progress=False)
     assert (tmp_path / "theirs" / "config.json").read_text() == '{"precious": true}'
     (tmp_path / "afile").write_text("")

@@ -15,7 +15,7 @@ import torch
 
 from adjointsim.cli import DamagedFileError
 
-from .atomic import atomic_path
+from .atomic import RunExists, atomic_path, differing
 
 
 def _digest(payload: Any) -> str:
@@ -91,4 +91,15 @@ def load_checkpoint(path: str | Path, keys: Iterable[str] = ("model",),
             f"{path} is damaged: its contents do not match the SHA-256 digest stored with them "
             f"(a flipped bit on disk or an edited file); {recover}"
         )
+    return ckpt
+
+
+def load_run_checkpoint(path: Path, config: dict, keys: Iterable[str]) -> dict:
+    """The checkpoint of an unfinished run of ``config``, verified as :func:`load_checkpoint`
+    does; one written under another configuration is ``RunExists`` naming the keys."""
+    ckpt = load_checkpoint(path, keys, "delete it to start again")
+    differ = differing(config, ckpt["config"])
+    if differ:
+        raise RunExists(f"{path.parent} holds a run of another configuration (differs in "
+                        f"{', '.join(differ)}); choose another --out")
     return ckpt

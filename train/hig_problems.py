@@ -57,7 +57,6 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from .atomic import (
     RunExists,
-    differing,
     finished_result,
     pyplot,
     run_errors,
@@ -66,7 +65,7 @@ from .atomic import (
     write_json,
     write_text,
 )
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_run_checkpoint, save_checkpoint
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
@@ -335,12 +334,8 @@ def train_run(
     state = {"wall": 0.0, "updates": 0, "next_eval": 0.0, "history": [], "losses": [],
              "diverged": False}
     if ckpt_path.exists():
-        ckpt = load_checkpoint(ckpt_path, ("config", "model", "optimizer", "generator", "state"),
-                               "delete it to start again")
-        differ = differing(config, ckpt["config"])
-        if differ:
-            raise RunExists(f"{out} holds a run of another configuration (differs in "
-                            f"{', '.join(differ)}); choose another --out")
+        ckpt = load_run_checkpoint(ckpt_path, config,
+                                   ("config", "model", "optimizer", "generator", "state"))
         model.load_state_dict(ckpt["model"])
         if cfg.optimizer == "adam":
             opt.load_state_dict(ckpt["optimizer"])

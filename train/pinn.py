@@ -44,8 +44,6 @@ from nets.mlp import MLP
 from nets.taylor import jets, laplacian
 
 from .atomic import (
-    RunExists,
-    differing,
     finished_result,
     pyplot,
     run_errors,
@@ -54,7 +52,7 @@ from .atomic import (
     write_json,
     write_text,
 )
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_run_checkpoint, save_checkpoint
 from .weighting import Weighting, canonical_rule
 
 PROBLEMS = ("poisson", "sobolev", "ks-inverse")
@@ -487,11 +485,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     state = {"epoch": 0, "history": [], "skipped": 0, "streak": 0, "seconds": 0.0,
              "diverged": False, "phases": []}
     if ckpt_path.exists():
-        ckpt = load_checkpoint(ckpt_path, CHECKPOINT_KEYS, "delete it to start again")
-        differ = differing(config, ckpt["config"])
-        if differ:
-            raise RunExists(f"{out} holds a run of another configuration (differs in "
-                            f"{', '.join(differ)}); choose another --out")
+        ckpt = load_run_checkpoint(ckpt_path, config, CHECKPOINT_KEYS)
         try:
             model.load_state_dict(ckpt["model"])
             opt.load_state_dict(ckpt["optimizer"])
