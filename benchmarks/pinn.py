@@ -127,17 +127,17 @@ def split(route: str, weighting: str,
         lap.append((time.process_time() - t0) / epochs)
         whole.append(epoch_time(route, epochs, weighting))
     return (floor, inside_floor, median(lap), median(whole) - median(lap),
-            elementwise_floor(model, problem.x_col.shape[0]))
+            elementwise_floor(model, *problem.x_col.shape))
 
 
-def elementwise_floor(model: torch.nn.Module, n: int) -> float:
-    """Seconds per epoch that no fusing of the forward Laplacian's element-wise work removes:
-    tanh of each hidden layer's (n, width) pre-activations, and one write pass (a copy, warm)
+def elementwise_floor(model: torch.nn.Module, n: int, dirs: int) -> float:
+    """Seconds per epoch that no fusing of the forward Laplacian's element-wise work removes
+    (n points, derivatives along dirs axes): tanh of each hidden layer's (n, width)
+    pre-activations, and one write pass (a copy, warm)
     per array the layers must produce: forward, the D first-order and the second-order
     streams; reverse, the cotangents of the D + 2 pre-activation streams (the first layer's
     value stream only: its other streams are the same for every point)."""
     widths = [m.out_features for m in model.modules() if isinstance(m, torch.nn.Linear)][:-1]
-    dirs = 2  # the Poisson problem's axes
     arrays = {w: (torch.rand(n, w).numpy(), torch.empty(n, w).numpy()) for w in widths}
     reps = []
     for _ in range(5):
