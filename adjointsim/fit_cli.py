@@ -101,7 +101,7 @@ def write_observations(path: str | Path, prob: dict[str, Any]) -> None:
     """An observation file (module doc) for ``prob`` as made by :func:`demo_problem`."""
     import h5py
 
-    from train.atomic import atomic_path
+    from adjointsim.files import atomic_path
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["scene"] = prob["scene"]
@@ -202,7 +202,7 @@ def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
              truth_u0: np.ndarray | None) -> None:
     """Fitted against observed states (first batch element and channel) at up to four observed
     steps, and the fitted initial state against the truth when it is known."""
-    from train.atomic import pyplot, save_figure
+    from adjointsim.files import pyplot, save_figure
 
     plt = pyplot()
     steps = list(obs)
@@ -242,7 +242,7 @@ def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
 
 
 def plot_history(path: Path, history: list[dict], title: str) -> None:
-    from train.atomic import pyplot, save_figure
+    from adjointsim.files import pyplot, save_figure
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -289,7 +289,7 @@ def _bounds(items: list[str] | None) -> dict[str, tuple[float | None, float | No
 def run_fit(obs_file: Path, scene_name: str | None, out: Path, args: argparse.Namespace,
             progress: bool = True) -> dict[str, Any]:
     """Fit the observation file, write the run directory, return result.json's contents."""
-    from train.atomic import atomic_path, write_json, write_text
+    from adjointsim.files import atomic_path, write_json, write_text
 
     from .fit import fit, parse_wrt
 
@@ -432,7 +432,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def parameter_study(out: Path, seeds: int = 5, progress: bool = True) -> int:
     """KS (α, β) and Burgers ν from solver trajectories, 0% and 1% noise (``seeds`` noise
     seeds), each from a perturbed start: ``OUT/fit-params.md`` and ``OUT/fit-params.json``."""
-    from train.atomic import write_json, write_text
+    from adjointsim.files import write_json, write_text
 
     from .fit import fit
 

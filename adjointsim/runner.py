@@ -41,7 +41,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 # The project's one atomic writer; train/__init__ imports nothing, so this loads no torch.
-from train.atomic import write_text
+from adjointsim.files import write_text
 
 ROW_FILE = "row.json"
 _ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}

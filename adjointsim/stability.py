@@ -192,7 +192,7 @@ def report(rows: list[dict], out: Path) -> str:
     """``OUT/stability.md`` (table) and ``OUT/stability.png``: per scheme family, the largest
     stable Δt against the grid size (markers; triangles: stable up to the search cap) and the
     stated limit (dashed)."""
-    from train.atomic import pyplot, save_figure, write_text
+    from adjointsim.files import pyplot, save_figure, write_text
 
     text = table(rows)
     write_text(out / "stability.md", text + "\n")
@@ -249,7 +249,7 @@ def command(names: list[str], everything: bool, size: str, jobs: int, cluster: s
     """``adjointsim stability``: run the cells, print the table; exit 1 if a cell failed."""
     import sys
 
-    from train.atomic import write_text
+    from adjointsim.files import write_text
 
     from . import runner
 

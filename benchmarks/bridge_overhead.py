@@ -1,4 +1,4 @@
-"""Per-call overhead of ``train.bridge.step``: what a closed loop pays per solver call.
+"""Per-call overhead of ``adjointsim.train.bridge.step``: what a closed loop pays per solver call.
 
     python benchmarks/bridge_overhead.py [--repeats 21] [--calls 200]
 
@@ -34,9 +34,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from adjointsim.train import bridge  # noqa: E402
 
 import adjointsim  # noqa: E402
-from train import bridge  # noqa: E402
 
 BATCH = 8
 SCENES = {

@@ -6,7 +6,7 @@ and the three routes to its direction side by side.
 Prints the median time of one HIG update on the problem's HIG batch, split into the network
 part (the layers' backward for all b·d_y rows), the physics part (the solver's batched adjoint,
 one call for all rows), the decomposition (the Gram eigendecomposition, or QR + small SVD, as
-``train.hig`` chooses) and the apply, with the physics share (target ≤ 25% on the
+``adjointsim.train.hig`` chooses) and the apply, with the physics share (target ≤ 25% on the
 oscillators). Then J = ∂y/∂θ from ``HalfInverseGradients.jacobian`` against
 ``torch.func.jacrev`` through the same RK4 simulator written in plain torch (checked equal to
 1e-10 in float64; target ≥ 5x). Last, per problem of ``--routes``: the direction of one update
@@ -22,11 +22,11 @@ import statistics
 import time
 
 import torch
+from adjointsim.train.hig import HalfInverseGradients
+from adjointsim.train.hig_problems import make_problem
 from torch.func import functional_call, jacrev
 
 from adjointsim.solvers.oscillators import Oscillators
-from train.hig import HalfInverseGradients
-from train.hig_problems import make_problem
 
 
 def torch_oscillators(stepper: Oscillators, u0: torch.Tensor, controls: torch.Tensor,

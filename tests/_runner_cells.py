@@ -14,8 +14,8 @@ import os
 import time
 from pathlib import Path
 
+from adjointsim.files import write_text
 from adjointsim.runner import Study, register_study
-from train.atomic import write_text
 
 EPOCHS = 4
 

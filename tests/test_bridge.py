@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import torch
+from adjointsim.train import bridge
 
 import adjointsim
-from train import bridge
 
 NAMES = adjointsim.names()
 

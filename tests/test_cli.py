@@ -11,10 +11,10 @@ import sys
 from dataclasses import fields
 
 import pytest
+from adjointsim.train import data as datamod
+from adjointsim.train.trainer import ACCEPTED, Interval, TrainConfig
 
 from adjointsim.cli import main
-from train import data as datamod
-from train.trainer import ACCEPTED, Interval, TrainConfig
 
 #: the cheapest run: the prediction setup calls no solver
 TINY = ["--setup", "prediction", "--width", "2", "--blocks", "1", "--unroll", "2",
@@ -121,7 +121,7 @@ def _outside(rule):
 
 @pytest.mark.parametrize("f", [f for f in fields(TrainConfig)], ids=lambda f: f.name)
 def test_every_config_field_has_an_accepted_range(f):
-    assert f.name in ACCEPTED, f"add {f.name!r} to train.trainer.ACCEPTED"
+    assert f.name in ACCEPTED, f"add {f.name!r} to adjointsim.train.trainer.ACCEPTED"
     default = TrainConfig()
     default.validate()
     value = _outside(ACCEPTED[f.name])
@@ -157,19 +157,19 @@ def test_user_errors_print_one_line_without_a_traceback(tmp_path):
 
 def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path, capsys,
                                                                  monkeypatch):
-    import train.trainer
+    import adjointsim.train.trainer
 
     def bug(*args, **kwargs):
         raise ZeroDivisionError("a bug")
 
-    monkeypatch.setattr(train.trainer, "train", bug)
+    monkeypatch.setattr(adjointsim.train.trainer, "train", bug)
     with pytest.raises(ZeroDivisionError):
         main(["train", "--data", str(tiny), "--out", str(tmp_path / "r"), *TINY])
 
     def lookup_bug(*args, **kwargs):
         return {}["a missing key"]
 
-    monkeypatch.setattr(train.trainer, "train", lookup_bug)
+    monkeypatch.setattr(adjointsim.train.trainer, "train", lookup_bug)
     with pytest.raises(KeyError):
         main(["train", "--data", str(tiny), "--out", str(tmp_path / "r"), *TINY])
     # An unknown solver name is the user's KeyError: one line.
@@ -179,7 +179,7 @@ def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path,
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(train.trainer, "train", interrupted)
+    monkeypatch.setattr(adjointsim.train.trainer, "train", interrupted)
     code, _, err = _run(capsys, "train", "--data", tiny, "--out", tmp_path / "r", *TINY)
     assert code == 130
     assert err.startswith("adjointsim train: interrupted; continue from ") and "--resume" in err
@@ -209,7 +209,7 @@ def test_eval_missing_directory_and_bad_horizons(tiny, tmp_path, capsys):
 
 
 def test_json_output_never_holds_nan_or_infinity():
-    from train.atomic import json_text
+    from adjointsim.files import json_text
 
     text = json_text([{"rel_error": math.inf, "split": {"x": math.nan}, "ok": 1.5}])
     assert "Infinity" not in text and "NaN" not in text

@@ -6,13 +6,13 @@ import re
 import numpy as np
 import pytest
 import torch
+from adjointsim.train import control
+from adjointsim.train.model import NeuralStepper
+from adjointsim.train.trainer import TrainConfig
+from adjointsim.train.unroll import GradientFlow, canonical, clip_update, unrolled_loss
 
 import adjointsim
 from adjointsim.cli import main as cli
-from train import control
-from train.model import NeuralStepper
-from train.trainer import TrainConfig
-from train.unroll import GradientFlow, canonical, clip_update, unrolled_loss
 
 
 def _setup(task="cartpole", level=None, steps=12, batch=4, seed=0):
@@ -93,7 +93,7 @@ def test_modes_stop_the_paths_they_name():
 
 
 def adjointsim_step(task, x, c):
-    from train import bridge
+    from adjointsim.train import bridge
 
     return bridge.step(task.solver, x, c)
 
@@ -295,7 +295,7 @@ def test_cli_keeps_other_files_and_tells_how_to_continue(tmp_path, capsys, monke
 
 
 def test_study_grids():
-    from train.studies import stablebptt
+    from adjointsim.train.studies import stablebptt
 
     quick = stablebptt.cells("quick", None)
     assert len(quick) == 3 * 2 * 4 and len({c["id"] for c in quick}) == len(quick)
@@ -309,8 +309,9 @@ def test_study_grids():
 
 
 def test_tiny_study_end_to_end(tmp_path):
+    from adjointsim.train.studies import load_all
+
     from adjointsim import runner
-    from train.studies import load_all
 
     load_all()
     rows = runner.run("stablebptt", tmp_path, "tiny", None, cluster="none", progress=False)

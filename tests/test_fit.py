@@ -164,8 +164,7 @@ def test_fit_command(tmp_path, capsys):
 
 def test_burgers_pinn_residual_and_training():
     import torch
-
-    from train.burgers_pinn import NU, BurgersPinn, BurgersPinnConfig, train_pinn
+    from adjointsim.train.burgers_pinn import NU, BurgersPinn, BurgersPinnConfig, train_pinn
 
     x = np.linspace(-1, 1, 16, endpoint=False) + 1 / 16
     cfg = BurgersPinnConfig(collocation=50, boundary_points=10, dtype="float64", epochs=12,

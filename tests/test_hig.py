@@ -8,10 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from adjointsim.solvers.oscillators import Oscillators
-from train.hig import HalfInverseGradients, SolverPhysics, TorchPhysics
-from train.hig_problems import (
+from adjointsim.train.hig import HalfInverseGradients, SolverPhysics, TorchPhysics
+from adjointsim.train.hig_problems import (
     RunConfig,
     RunExists,
     laplacian,
@@ -20,6 +18,8 @@ from train.hig_problems import (
     read_history,
     train_run,
 )
+
+from adjointsim.solvers.oscillators import Oscillators
 
 STEPS = 6
 
@@ -336,7 +336,8 @@ def test_cli_runs_and_refuses_in_one_line(tmp_path, capsys):
 
 
 def test_tiny_study_end_to_end(tmp_path):
-    import train.studies.hig as study
+    import adjointsim.train.studies.hig as study
+
     from adjointsim.runner import run
 
     rows = run("hig", tmp_path, "tiny", None, cluster="none", progress=False)
@@ -356,7 +357,8 @@ def test_tiny_study_end_to_end(tmp_path):
 
 @pytest.mark.slow
 def test_quick_study_reproduces_hig_below_adam_on_the_linear_chain(tmp_path):
-    import train.studies.hig  # noqa: F401
+    import adjointsim.train.studies.hig  # noqa: F401
+
     from adjointsim.runner import run
 
     rows = run("hig", tmp_path, "quick", 3, cluster="local", jobs=2, progress=False)

@@ -2,8 +2,7 @@
 
 import pytest
 import torch
-
-from nets import MLP, DilatedResNet, ResNet, UNet, parameter_count
+from adjointsim.nets import MLP, DilatedResNet, ResNet, UNet, parameter_count
 
 
 def test_resnet_presets_match_list_et_al():

@@ -6,11 +6,11 @@ import math
 
 import pytest
 import torch
+from adjointsim.train import pinn
+from adjointsim.train.pinn import PinnConfig, make_problem, read_history, train_run
 
 from adjointsim.cli import main as cli
-from train import pinn
-from train.atomic import RunExists
-from train.pinn import PinnConfig, make_problem, read_history, train_run
+from adjointsim.errors import RunExists
 
 TINY = {"width": 6, "depth": 2, "collocation": 40, "edge_points": 6, "log_every": 2}
 TINY_ARGS = ["--width", "6", "--depth", "2", "--collocation", "40", "--edge-points", "6",
@@ -229,7 +229,8 @@ def test_cli_runs_and_refuses_a_finished_run(tmp_path, capsys):
 
 
 def test_tiny_study_end_to_end(tmp_path):
-    import train.studies.pinn as study
+    import adjointsim.train.studies.pinn as study
+
     from adjointsim.runner import run
 
     rows = run("pinn-poisson", tmp_path, "tiny", None, cluster="none", progress=False)
@@ -277,7 +278,8 @@ def test_sobolev_run_balances_five_terms(tmp_path):
 
 @pytest.mark.slow
 def test_quick_study_ranks_inverse_dirichlet_below_uniform(tmp_path):
-    import train.studies.pinn  # noqa: F401
+    import adjointsim.train.studies.pinn  # noqa: F401
+
     from adjointsim.runner import run
 
     rows = run("pinn-poisson", tmp_path, "quick", None, cluster="none", progress=False)
@@ -367,7 +369,8 @@ def test_ks_inverse_bad_options_are_named():
 
 
 def test_tiny_ks_inverse_study_tables_the_data_loss_by_phase(tmp_path):
-    import train.studies.pinn  # noqa: F401 - registers the study
+    import adjointsim.train.studies.pinn  # noqa: F401 - registers the study
+
     from adjointsim.runner import run
 
     rows = run("pinn-ks-inverse", tmp_path, "tiny", None, cluster="none", progress=False)

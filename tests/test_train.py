@@ -10,14 +10,20 @@ import time
 import numpy as np
 import pytest
 import torch
+from adjointsim.train import bridge
+from adjointsim.train import data as datamod
+from adjointsim.train.model import NeuralStepper
+from adjointsim.train.problems import get_problem
+from adjointsim.train.trainer import (
+    TrainConfig,
+    build_model,
+    load_checkpoint,
+    save_checkpoint,
+    train,
+)
+from adjointsim.train.unroll import unrolled_loss
 
-from adjointsim.cli import UserError
-from train import bridge
-from train import data as datamod
-from train.model import NeuralStepper
-from train.problems import get_problem
-from train.trainer import TrainConfig, build_model, load_checkpoint, save_checkpoint, train
-from train.unroll import unrolled_loss
+from adjointsim.errors import UserError
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +153,7 @@ def test_truncated_bptt_interpolates_between_nog_and_wig(tiny):
 
 
 def test_curriculum_stages_and_one_scaling(tiny, tmp_path):
-    from train.trainer import _plan
+    from adjointsim.train.trainer import _plan
 
     model = train(_config(tiny, tmp_path / "c", curriculum=[[1, 1e-3], [2, 1e-4]], epochs=1),
                   progress=False)
@@ -164,7 +170,7 @@ def test_curriculum_stages_and_one_scaling(tiny, tmp_path):
 
 def _scale_loss_after(monkeypatch, calls: int, factor: float) -> None:
     """Make the trainer's loss (and its gradients) ``factor`` × larger from call calls + 1 on."""
-    import train.trainer as trainer
+    import adjointsim.train.trainer as trainer
 
     count = {"n": 0}
 
@@ -176,7 +182,7 @@ def _scale_loss_after(monkeypatch, calls: int, factor: float) -> None:
 
 
 def test_spiking_and_non_finite_updates_are_skipped(tiny, tmp_path, monkeypatch):
-    import train.trainer as trainer
+    import adjointsim.train.trainer as trainer
 
     # Gradients 10⁶× larger than before are skipped once the running mean exists (20 steps).
     _scale_loss_after(monkeypatch, 21, 1e6)
@@ -217,7 +223,7 @@ def test_resume_after_interruption_gives_the_same_weights(tiny, tmp_path):
 
 
 def test_evaluating_an_unfinished_run_warns(tiny, tmp_path):
-    from train.studies.list_et_al import load_model
+    from adjointsim.train.studies.list_et_al import load_model
 
     train(_config(tiny, tmp_path / "cut", max_iterations=2), progress=False)
     with pytest.warns(UserWarning, match="unfinished run.*--resume"):
@@ -408,7 +414,7 @@ def test_dataset_metadata_and_splits(tiny):
 def test_evaluation_rollout_keeps_going_when_one_trajectory_blows_up():
     from types import SimpleNamespace
 
-    from train.evaluate import rollout
+    from adjointsim.train.evaluate import rollout
 
     class Growth(torch.nn.Module):
         """Row i is multiplied by its parameter each step."""
@@ -428,9 +434,10 @@ def test_evaluation_rollout_keeps_going_when_one_trajectory_blows_up():
 def test_tiny_study_end_to_end_and_resumes(tmp_path):
     import json
 
+    from adjointsim.train.cli import main
+    from adjointsim.train.studies import load_all
+
     from adjointsim.runner import run
-    from train.cli import main
-    from train.studies import load_all
 
     load_all()
     out = tmp_path / "study"
@@ -459,7 +466,7 @@ def test_tiny_study_end_to_end_and_resumes(tmp_path):
 def test_study_command_sizes(argv, size):
     import argparse
 
-    from train.cli import add_commands
+    from adjointsim.train.cli import add_commands
 
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers(dest="command"))

@@ -7,10 +7,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from adjointsim.train.weighting import Weighting
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from train.weighting import Weighting
 
 RES = torch.tensor([1.0, -1.0, 1.0, -1.0], dtype=torch.float64)  # std 1, max|.| 1
 
@@ -116,7 +115,7 @@ def test_backward_equals_the_gradient_of_the_weighted_sum_and_refreshes_when_due
 def test_on_a_differentiable_physics_loss_state_and_control_cost():
     """The guidance task through the solver's adjoint: evader distance and control effort are
     two terms of very different spread; ID lifts the weaker one to the reference's spread."""
-    from train import bridge, control
+    from adjointsim.train import bridge, control
 
     task = control.get_task("guidance", 1.0)
     torch.manual_seed(0)

@@ -164,7 +164,7 @@ def _once_differentiable(names: list[str], grads: tuple, sources: tuple) -> tupl
         return grads
     solver = ", ".join(sorted(set(names)))
     error = _torch_functions.DelayedError(
-        f"train.bridge ({solver}): the solver's backward pass is a hand-written discrete "
+        f"adjointsim.train.bridge ({solver}): the solver's backward pass is a hand-written discrete "
         "adjoint and is once-differentiable; second derivatives through it (a backward pass "
         "through a gradient taken with create_graph=True: gradient penalties, Hessian-vector "
         "products, gradgradcheck) are not available. Use a first-order objective, or finite "

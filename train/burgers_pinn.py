@@ -10,14 +10,14 @@ boundary values u(±1, t) = 0.
   same scene), L-BFGS-B.
 * PINN: u(x, t) an MLP (tanh, 8 × 20, as the book's), trained with Adam on three terms: the data
   at t = 0.5, the Burgers residual at collocation points of [−1, 1] × [0, 1] (u_t, u_x, u_xx
-  from the forward Taylor jets of :mod:`nets.taylor`, no nested autograd) and the boundary
-  values, through :mod:`train.weighting` (uniform by default: inverse-Dirichlet weighting
+  from the forward Taylor jets of :mod:`adjointsim.nets.taylor`, no nested autograd) and the boundary
+  values, through :mod:`adjointsim.train.weighting` (uniform by default: inverse-Dirichlet weighting
   drives the network to the trivial u ≈ 0 here, see :class:`BurgersPinnConfig`).
 
 For both: the misfit (MSE) at t = 0.5 against the observations, the MSE of the reconstructed
 u(·, 0) against −sin(πx) on the cell centres, and the run time (CPU seconds of this process on one
 thread, robust to a loaded machine; the DP time excludes numba's one-off compilation). The PINN
-runs in float32 (as the book's), DP in float64. ``python -m train.burgers_pinn --out docs`` writes
+runs in float32 (as the book's), DP in float64. ``python -m adjointsim.train.burgers_pinn --out docs`` writes
 ``fit-burgers.md``, ``fit-burgers.json`` and ``fit-burgers.png`` (the book's side-by-side plots
 and the misfit over run time).
 """
@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from adjointsim.nets.mlp import MLP
+from adjointsim.nets.taylor import jets
 from torch import nn
 
-from nets.mlp import MLP
-from nets.taylor import jets
+from adjointsim.files import pyplot, save_figure, write_json, write_text
 
-from .atomic import pyplot, save_figure, write_json, write_text
 from .weighting import Weighting
 
 NU = 0.01 / math.pi
@@ -217,7 +217,7 @@ def compare(out: Path, pinn_seconds: float, dp_iterations: tuple[int, ...] = (30
         lines.append(f"| {r['method']} | {r['misfit']:.3g} | {u0} | {r['seconds']:.3g} |")
     text = "\n".join(lines)
     about = (f"PBDL's Burgers reconstruction (observations at t = 0.5 only): "
-             f"`python -m train.burgers_pinn --out docs --pinn-seconds {pinn_seconds:g}`. "
+             f"`python -m adjointsim.train.burgers_pinn --out docs --pinn-seconds {pinn_seconds:g}`. "
              "CPU seconds of one thread (DP without numba's compilation); the PINN rows are its "
              "last logged state (every 50 epochs) within DP's run time and at its budget. "
              "Plots: fit-burgers.png.\n\n")
@@ -288,7 +288,7 @@ def nu_study(out: Path, seconds: float, noises: tuple[float, ...] = (0.0, 0.01),
                      "nu": h["nu"], "rel_error": abs(h["nu"] / NU - 1),
                      "seconds": h["seconds"]})
     lines = ["The viscosity ν = 0.01/π of the PBDL Burgers trajectory (all 32 steps observed, "
-             "N = 128), from ν = 0.02/π: `python -m train.burgers_pinn --nu-study --out docs` "
+             "N = 128), from ν = 0.02/π: `python -m adjointsim.train.burgers_pinn --nu-study --out docs` "
              "(CPU seconds, one thread).", "",
              "| method | noise | fitted ν | rel. error | seconds |", "|---|---|---|---|---|"]
     for r in rows:

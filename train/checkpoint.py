@@ -13,9 +13,9 @@ from typing import Any
 
 import torch
 
-from adjointsim.cli import DamagedFileError
-
-from .atomic import RunExists, atomic_path, differing
+from adjointsim.errors import DamagedFileError, RunExists
+from adjointsim.files import atomic_path
+from adjointsim.run import differing
 
 
 def _digest(payload: Any) -> str:

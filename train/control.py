@@ -1,12 +1,12 @@
 """Controllers trained through simulators with the gradient-flow modes of stabilised BPTT.
 
 A controller network N reads the state and outputs a control, the simulator advances one step
-(``train.bridge.step``: the solver's compiled step forward, its hand-written adjoint backward),
+(``adjointsim.train.bridge.step``: the solver's compiled step forward, its hand-written adjoint backward),
 and the loss judges the trajectory (Schnell & Thuerey 2024):
 
     c_t = N(flow.net(x_t); θ),   x_{t+1} = S(flow.phys(x_t), c_t),
 
-where ``flow`` (:class:`train.unroll.GradientFlow`) decides where gradients stop (R, M, S, N,
+where ``flow`` (:class:`adjointsim.train.unroll.GradientFlow`) decides where gradients stop (R, M, S, N,
 C). The three tasks of the paper, with the note's constants:
 
 * ``cartpole``: 1–4 poles (``--poles``), 100 steps of Δt = 0.01, loss 1 − mean_i cos θ_i at
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import json
+import argparse
 import math
 import time
 import tomllib
@@ -41,20 +42,12 @@ from torch import nn
 from tqdm.auto import tqdm
 
 import adjointsim
+from adjointsim.errors import RunExists
+from adjointsim.files import atomic_path, pyplot, save_figure, write_json, write_text
+from adjointsim.run import read_result, refuse_foreign, run_errors
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
-from .atomic import (
-    RunExists,
-    atomic_path,
-    pyplot,
-    read_result,
-    refuse_foreign,
-    run_errors,
-    save_figure,
-    write_json,
-    write_text,
-)
 from .checkpoint import load_checkpoint, save_checkpoint
 from .unroll import CLIPS, FLOWS, GradientFlow
 
@@ -191,7 +184,7 @@ def closed_loop(
     keep: bool = False,
 ) -> tuple[torch.Tensor, list[torch.Tensor] | None]:
     """Run the controller through the simulator; returns the loss and (if ``keep``) the
-    states x_0..x_n and controls. One solver call per step through ``train.bridge.step``."""
+    states x_0..x_n and controls. One solver call per step through ``adjointsim.train.bridge.step``."""
     flow = flow or GradientFlow("R")
     x = flow.start(x0)
     terms: list[torch.Tensor] = []
@@ -505,9 +498,7 @@ def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
 
 
 # ----------------------------------------------------------------------------- CLI
-def add_command(sub, help_text: str) -> None:
-    """The ``adjointsim control`` subcommand (called from ``train.cli.add_commands``)."""
-    p = sub.add_parser("control", help=help_text)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("task", help=f"one of {', '.join(TASKS)}")
     p.add_argument("--config", type=Path, default=None, help="TOML file of ControlConfig keys")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")

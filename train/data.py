@@ -21,9 +21,9 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
-from adjointsim.cli import DamagedFileError, UserError
+from adjointsim.errors import DamagedFileError, UserError
+from adjointsim.files import atomic_path
 
-from .atomic import atomic_path
 from .problems import Problem, get_problem
 
 #: 2: every dataset has a Fletcher-32 checksum; 1: none (loaded with a warning)

@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 from adjointsim import NonFiniteInputError, NonFiniteStateError
-from adjointsim.cli import UserError
+from adjointsim.errors import UserError
+from adjointsim.files import pyplot, save_figure
 
-from .atomic import pyplot, save_figure
 from .data import Dataset, Split
 from .model import NeuralStepper
 

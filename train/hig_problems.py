@@ -50,21 +50,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from adjointsim.errors import RunExists
+from adjointsim.files import pyplot, save_figure, uninterrupted, write_json, write_text
+from adjointsim.run import finished_result, run_errors
 from adjointsim.solvers.oscillators import Oscillators
 from adjointsim.solvers.poisson import Poisson2D
 from adjointsim.solvers.schrodinger import SchrodingerCN
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
-from .atomic import (
-    RunExists,
-    finished_result,
-    pyplot,
-    run_errors,
-    save_figure,
-    uninterrupted,
-    write_json,
-    write_text,
-)
 from .checkpoint import load_run_checkpoint, save_checkpoint
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
@@ -483,8 +476,7 @@ def plot_history(curves: dict[str, list[dict]], path: Path, title: str, ax=None)
 
 
 # --------------------------------------------------------------------------- CLI
-def add_parser(sub: argparse._SubParsersAction, help_text: str) -> None:
-    h = sub.add_parser("hig", help=help_text)
+def add_arguments(h: argparse.ArgumentParser) -> None:
     h.add_argument("problem", choices=PROBLEMS)
     h.add_argument("--optimizer", choices=OPTIMIZERS, default="hig")
     h.add_argument("--time-budget", type=float, default=None,

@@ -12,10 +12,10 @@ collocation points' mean and std. Adam, lr 1e-3, full batch, 30,001 epochs with 
 10k, 20k and 30k (a shorter run is the start of such a run). Metric: relative L2
 error on the 100 × 100 grid. The seed draws the points and the initial network.
 
-Loss L = λ_res L_res + λ_bc L_bc with λ from :class:`train.weighting.Weighting` (the residual
+Loss L = λ_res L_res + λ_bc L_bc with λ from :class:`adjointsim.train.weighting.Weighting` (the residual
 is the reference term, as in the authors' code, unless ``reference = "max"``); ``fixed`` uses
 the analytic ε-optimal λ_res = 1/(1 + ω⁴), λ_bc = 1 − λ_res. Δu comes from the forward Taylor
-route (:mod:`nets.taylor`) or, for comparison, nested autograd (``route = "autograd"``).
+route (:mod:`adjointsim.nets.taylor`) or, for comparison, nested autograd (``route = "autograd"``).
 
 A run directory holds ``config.json``, ``checkpoint.pt`` (atomic, every minute and at the end),
 ``history.csv`` (every ``log_every`` epochs: each term, each weight, the weighted total, the
@@ -37,21 +37,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from adjointsim.nets.mlp import MLP
+from adjointsim.nets.taylor import jets, laplacian
 from torch import nn
 
-from adjointsim.cli import DamagedFileError
-from nets.mlp import MLP
-from nets.taylor import jets, laplacian
+from adjointsim.errors import DamagedFileError
+from adjointsim.files import pyplot, save_figure, uninterrupted, write_json, write_text
+from adjointsim.run import finished_result, run_errors
 
-from .atomic import (
-    finished_result,
-    pyplot,
-    run_errors,
-    save_figure,
-    uninterrupted,
-    write_json,
-    write_text,
-)
 from .checkpoint import load_run_checkpoint, save_checkpoint
 from .weighting import Weighting, canonical_rule
 
@@ -170,7 +163,7 @@ class Standardized(nn.Module):
                    for i in range(x.shape[1]))
 
     def jets(self, x: torch.Tensor, order: int, axes: tuple[int, ...] = ()) -> list[torch.Tensor]:
-        """:func:`nets.taylor.jets` along the physical coordinate axes (``axes``: only
+        """:func:`adjointsim.nets.taylor.jets` along the physical coordinate axes (``axes``: only
         these)."""
         dirs = torch.diag(1.0 / self.std)
         return jets(self.mlp, (x - self.mean) / self.std, order, dirs[list(axes)] if axes else dirs)
@@ -279,7 +272,7 @@ class Sobolev(Problem):
     · A'_j sin(l'_j y + φ'_j) (A, A' ~ U(−5, 5), l, l' ∈ {1..4}, φ, φ' ~ U(0, 2π), drawn from the
     seed) on (0, 2π]² together with its derivatives: five objectives, the MSEs of f,
     ∂x f + ∂y f, Δf, ∂xxx f + ∂yyy f and ∂xxxx f + ∂yyyy f at ``collocation`` uniformly random
-    points; each is the sum over the axes of one order of :func:`nets.taylor.jets`. Network
+    points; each is the sum over the axes of one order of :func:`adjointsim.nets.taylor.jets`. Network
     [2, 64×5, 1] with sin activation (PyTorch's default init), inputs standardised; the ID
     reference is the highest derivative (the authors' code). Metric: relative L2 of f on the
     100 × 100 grid."""
@@ -341,7 +334,7 @@ class KSInverse(Problem):
     * ``data``: MSE of u against ``collocation`` grid values drawn from the trajectory;
     * ``periodic``: Σ_{m=0..3} mean (∂xᵐ u(0, t) − ∂xᵐ u(L, t))² at ``edge_points`` times;
     * ``res``: mean squared residual u_t + u u_x + α u_xx + β u_xxxx at ``collocation``
-      uniform points, ∂x to fourth order and ∂t from :mod:`nets.taylor` (two passes, so t
+      uniform points, ∂x to fourth order and ∂t from :mod:`adjointsim.nets.taylor` (two passes, so t
       carries only its first order).
 
     Phases: ``data`` alone for the first third of the epochs, ``+ periodic`` for the second,
@@ -636,9 +629,7 @@ def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
 
 
 # ----------------------------------------------------------------------------- CLI
-def add_command(sub: argparse._SubParsersAction, help_text: str) -> None:
-    """The ``adjointsim pinn`` subcommand (called from ``train.cli.add_commands``)."""
-    p = sub.add_parser("pinn", help=help_text)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("problem", help=f"one of {', '.join(PROBLEMS)}")
     p.add_argument("--out", type=Path, default=None,
                    help="default runs/pinn-PROBLEM-kK-WEIGHTING-seedS")

@@ -16,24 +16,22 @@ before digests load with a warning and get one at their next save.
 from __future__ import annotations
 
 import copy
-import csv
-import difflib
 import json
 import math
-import tomllib
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from adjointsim.nets import DilatedResNet, ResNet, UNet, parameter_count
 from tqdm.auto import tqdm
 
-from adjointsim.cli import ConfigTypeError, UserError
-from nets import DilatedResNet, ResNet, UNet, parameter_count
+from adjointsim.errors import RunExists, UserError
+from adjointsim.files import uninterrupted, write_text
+from adjointsim.run import SEEDS, Config, Interval, discard, plot_history, write_history
 
 from . import data as datamod
-from .atomic import atomic_path, pyplot, save_figure, write_text
 from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
@@ -44,32 +42,8 @@ CONV_NETS = {"resnet": ResNet, "dilated": DilatedResNet, "unet": UNet}
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
-@dataclass(frozen=True)
-class Interval:
-    """Accepted numbers: lo ≤ x ≤ hi (open ends excluded), always finite."""
-
-    lo: float
-    hi: float = math.inf
-    lo_open: bool = False
-    hi_open: bool = False
-
-    def __contains__(self, x: float) -> bool:
-        return (math.isfinite(x) and (x > self.lo if self.lo_open else x >= self.lo)
-                and (x < self.hi if self.hi_open else x <= self.hi))
-
-    def __str__(self) -> str:
-        if self.hi == math.inf:
-            return f"{'>' if self.lo_open else '≥'} {_num(self.lo)}"
-        return (f"in {'(' if self.lo_open else '['}{_num(self.lo)}, {_num(self.hi)}"
-                f"{')' if self.hi_open else ']'}")
-
-
-def _num(x: float) -> str:
-    return str(x) if isinstance(x, int) else f"{x:g}"
-
-
 #: the accepted values of every TrainConfig field: choices, an Interval, or (data, out,
-#: curriculum) checked by their own rule in TrainConfig.validate
+#: curriculum) checked by their own rule in TrainConfig.check
 ACCEPTED: dict[str, tuple | Interval | str] = {
     "problem": tuple(PROBLEMS),
     "data": "a non-empty path",
@@ -101,16 +75,14 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     # (refused in TrainConfig.validate).
     "rollback": Interval(0),
     "checkpoint_every": Interval(1),
-    # numpy's SeedSequence takes non-negative integers, torch.manual_seed up to 2⁶⁴ − 1.
-    "seed": Interval(0, 2**63 - 1),
+    "seed": SEEDS,
     "threads": Interval(1),
     "max_iterations": Interval(0),
 }
-_TYPE_NAMES = {int: "an integer", float: "a finite number", str: "a string", list: "a list"}
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(Config):
     problem: str = "ks"
     data: str = "data/ks-quick.h5"
     out: str = "runs/ks"
@@ -145,53 +117,9 @@ class TrainConfig:
     #: stop after this many iterations in total (for tests and interrupted-run drills)
     max_iterations: int = 0
 
-    @classmethod
-    def load(cls, path: str | Path | None = None, **overrides: Any) -> TrainConfig:
-        """A config from a TOML file (optional) with keyword overrides (None means unset);
-        unknown keys, wrong types and values outside :data:`ACCEPTED` fail naming the key."""
-        values: dict[str, Any] = {}
-        if path is not None:
-            try:
-                with open(path, "rb") as f:
-                    values.update(tomllib.load(f))
-            except FileNotFoundError:
-                raise FileNotFoundError(f"no config file at {path}") from None
-            except tomllib.TOMLDecodeError as e:
-                raise UserError(f"{path} is not valid TOML: {e}") from None
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        known = [f.name for f in fields(cls)]
-        for key in values:
-            if key not in known:
-                close = difflib.get_close_matches(key, known, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise UserError(f"unknown config option {key!r}{hint}; valid options: "
-                                f"{', '.join(known)}")
-        cfg = cls(**values)
-        cfg.validate(f" in {path}" if path is not None else "")
-        return cfg
+    ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
-    def validate(self, where: str = "") -> None:
-        """Check every field's type and range; ints given for float fields become floats."""
-        hints = get_type_hints(type(self))
-        for f in fields(self):
-            key, value, expected = f.name, getattr(self, f.name), hints[f.name]
-            if expected is float and type(value) is int:
-                value = float(value)
-                setattr(self, key, value)
-            # bool is an int to Python, never to a config
-            if not isinstance(value, expected) or isinstance(value, bool):
-                raise ConfigTypeError(
-                    f"config key {key!r}{where}: {value!r} ({type(value).__name__}) is not "
-                    f"{_TYPE_NAMES[expected]}; accepted: {_accepted(key)}"
-                )
-            rule = ACCEPTED.get(key)  # tests/test_cli.py checks that every field has one
-            if isinstance(rule, tuple) and value not in rule:
-                raise UserError(f"config key {key!r}{where}: {value!r} is not one of "
-                                f"{', '.join(rule)}")
-            if isinstance(rule, Interval) and value not in rule:
-                raise UserError(f"config key {key!r}{where}: {value!r} is not {_accepted(key)}")
-            if isinstance(rule, str) and expected is str and not value:
-                raise UserError(f"config key {key!r}{where}: needs {rule}")
+    def check(self, where: str) -> None:
         if not (self.rollback == 0 or self.rollback > 1):
             raise UserError(f"config key 'rollback'{where}: {self.rollback!r} is not "
                             "0 (off) or a number > 1")
@@ -206,15 +134,6 @@ class TrainConfig:
     def stages(self) -> list[tuple[int, float]]:
         stages = [(int(m), float(lr)) for m, lr in self.curriculum] or [(self.unroll, self.lr)]
         return stages
-
-
-def _accepted(key: str) -> str:
-    rule = ACCEPTED[key]
-    if isinstance(rule, tuple):
-        return "one of " + ", ".join(rule)
-    if isinstance(rule, Interval):
-        return f"{_TYPE_NAMES[get_type_hints(TrainConfig)[key]]} {rule}"
-    return rule
 
 
 def build_model(cfg: TrainConfig) -> NeuralStepper:
@@ -245,7 +164,7 @@ def _plan(cfg: TrainConfig, n_windows_fn) -> list[dict]:
 
 
 #: what a run directory holds besides config.json: replaced by ``overwrite``
-RUN_FILES = ("checkpoint.pt", "history.csv", "training.png", "results.json", "rollout-*.png")
+RUN_FILES = ("history.csv", "training.png", "results.json", "metrics.json", "rollout-*.png")
 _RECOVER = ("copy an intact run directory over it and continue with --resume, or train again "
             "from scratch with --overwrite")
 
@@ -265,7 +184,7 @@ def _claim(out: Path, resume: bool, overwrite: bool) -> None:
                     f"an unfinished run (stopped after {state['total']} iterations)")
         except (UserError, KeyError):
             what = "a run whose checkpoint cannot be read"
-    raise UserError(f"{out} already holds {what}; continue it with --resume, train into a new "
+    raise RunExists(f"{out} already holds {what}; continue it with --resume, train into a new "
                     "--out, or start it again with --overwrite")
 
 
@@ -290,15 +209,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     cond_all = torch.from_numpy(split.conditions)
     plan = _plan(cfg, lambda length: len(datamod.windows(split, length, cfg.stride)))
     if overwrite:  # only now that the new run is known to start
-        for pattern in RUN_FILES:
-            for old in out.glob(pattern):
-                old.unlink()
+        discard(out, RUN_FILES)
 
     model = build_model(cfg)
     optimizer = torch.optim.Adam(model.parameters(), lr=plan[0]["lr"])
     state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
              "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
-    best = None  # the weights and optimiser state at state["best"], for a rollback
+    # the weights and optimiser state at state["best"], for a rollback
+    kept: dict[str, Any] = {"best": None}
     history: list[dict] = []
     ckpt_path = out / "checkpoint.pt"
     if resume and ckpt_path.exists():
@@ -314,17 +232,36 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         state, history = state | ckpt["state"], ckpt["history"]
-        best = ckpt.get("best")
+        kept["best"] = ckpt.get("best")
     write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
 
     def save() -> None:
         save_checkpoint({"config": asdict(cfg), "model": model.state_dict(),
                          "optimizer": optimizer.state_dict(), "state": state,
-                         "history": history, "best": best}, ckpt_path)
+                         "history": history, "best": kept["best"]}, ckpt_path)
 
     total_iterations = sum(s["iterations"] for s in plan)
     bar = tqdm(total=total_iterations, initial=state["total"], desc=f"train {cfg.mode}",
                disable=not progress, unit="it")
+    try:
+        _loop(cfg, plan, split, frames_all, params_all, cond_all, model, optimizer, state,
+              history, kept, save, bar)
+    except KeyboardInterrupt:
+        save()  # between updates (see uninterrupted): the run resumes bit-identically
+        raise
+    finally:
+        bar.close()
+    if cfg.max_iterations and state["stage"] < len(plan):
+        return model
+    state["finished"] = True
+    save()
+    _write_history(history, out)
+    return model
+
+
+def _loop(cfg, plan, split, frames_all, params_all, cond_all, model, optimizer, state,
+          history, kept, save, bar) -> None:
+    """The stages' iterations, each one update held together against Ctrl-C."""
     while state["stage"] < len(plan):
         stage = plan[state["stage"]]
         length = stage["m"] + cfg.warmup + 1
@@ -333,61 +270,63 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         while state["iteration"] < stage["iterations"]:
             if cfg.max_iterations and state["total"] >= cfg.max_iterations:
                 save()
-                bar.close()
-                return model
-            it = state["iteration"]
-            epoch, pos = divmod(it, stage["per_epoch"])
-            # The order of an epoch depends only on (seed, stage, epoch): resumable.
-            key = np.random.SeedSequence([cfg.seed, state["stage"], epoch]).generate_state(1)
-            g = torch.Generator().manual_seed(int(key[0]))
-            order = torch.randperm(len(wins), generator=g)
-            pick = torch.from_numpy(wins)[order[pos * stage["batch"]:(pos + 1) * stage["batch"]]]
-            traj, start = pick[:, 0], pick[:, 1]
-            frames = frames_all[traj[:, None], start[:, None] + offsets]
-            lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every) * state["lr_scale"]
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-            optimizer.zero_grad(set_to_none=True)
-            try:
-                flow = GradientFlow(cfg.mode)
-                loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], flow,
-                                     cfg.warmup, cfg.truncate)
-                skipped = not torch.isfinite(loss)
-                if not skipped:
-                    flow.backward(loss, list(model.parameters()))
-            except BLOW_UPS:  # the coarse solver refused a state the model made
-                loss, skipped = torch.tensor(float("nan")), True
-            if not skipped:
-                norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf")))
-                # The running mean restarts each stage (a longer unroll has larger gradients)
-                # and also follows skipped norms, capped, so a lasting rise is let through.
-                ema, cutoff = state["grad_ema"], cfg.spike_factor * state["grad_ema"]
-                spike = it > 20 and norm > cutoff
-                skipped = not math.isfinite(norm) or spike
-                if math.isfinite(norm):
-                    state["grad_ema"] = norm if ema == 0 else 0.95 * ema + 0.05 * min(norm, cutoff)
-                if not skipped:
-                    optimizer.step()
-            state["skipped"] += skipped
-            history.append({"iteration": state["total"], "stage": state["stage"],
-                            "m": stage["m"], "lr": lr, "loss": loss.item(), "skipped": skipped})
-            state["iteration"] += 1
-            state["total"] += 1
-            if cfg.rollback and state["iteration"] % ROLLBACK_WINDOW == 0:
-                best = _guard(cfg.rollback, history, state, model, optimizer, best)
+                return
+            with uninterrupted():
+                _iteration(cfg, stage, wins, offsets, frames_all, params_all, cond_all, model,
+                           optimizer, state, history, kept)
             bar.update()
-            bar.set_postfix(loss=f"{loss.item():.3e}", m=stage["m"])
+            bar.set_postfix(loss=f"{history[-1]['loss']:.3e}", m=stage["m"])
             if state["total"] % cfg.checkpoint_every == 0:
                 save()
         state["stage"] += 1
         state["iteration"] = 0
         state["grad_ema"] = 0.0
-        state["best"], best = math.inf, None  # a longer unroll has a larger loss
-    bar.close()
-    state["finished"] = True
-    save()
-    _write_history(history, out)
-    return model
+        state["best"], kept["best"] = math.inf, None  # a longer unroll has a larger loss
+
+
+def _iteration(cfg, stage, wins, offsets, frames_all, params_all, cond_all, model, optimizer,
+               state, history, kept) -> None:
+    """One update, its history row and counters, and the rollback guard."""
+    it = state["iteration"]
+    epoch, pos = divmod(it, stage["per_epoch"])
+    # The order of an epoch depends only on (seed, stage, epoch): resumable.
+    key = np.random.SeedSequence([cfg.seed, state["stage"], epoch]).generate_state(1)
+    g = torch.Generator().manual_seed(int(key[0]))
+    order = torch.randperm(len(wins), generator=g)
+    pick = torch.from_numpy(wins)[order[pos * stage["batch"]:(pos + 1) * stage["batch"]]]
+    traj, start = pick[:, 0], pick[:, 1]
+    frames = frames_all[traj[:, None], start[:, None] + offsets]
+    lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every) * state["lr_scale"]
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    optimizer.zero_grad(set_to_none=True)
+    try:
+        flow = GradientFlow(cfg.mode)
+        loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], flow,
+                             cfg.warmup, cfg.truncate)
+        skipped = not torch.isfinite(loss)
+        if not skipped:
+            flow.backward(loss, list(model.parameters()))
+    except BLOW_UPS:  # the coarse solver refused a state the model made
+        loss, skipped = torch.tensor(float("nan")), True
+    if not skipped:
+        norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf")))
+        # The running mean restarts each stage (a longer unroll has larger gradients)
+        # and also follows skipped norms, capped, so a lasting rise is let through.
+        ema, cutoff = state["grad_ema"], cfg.spike_factor * state["grad_ema"]
+        spike = it > 20 and norm > cutoff
+        skipped = not math.isfinite(norm) or spike
+        if math.isfinite(norm):
+            state["grad_ema"] = norm if ema == 0 else 0.95 * ema + 0.05 * min(norm, cutoff)
+        if not skipped:
+            optimizer.step()
+    state["skipped"] += skipped
+    history.append({"iteration": state["total"], "stage": state["stage"],
+                    "m": stage["m"], "lr": lr, "loss": loss.item(), "skipped": skipped})
+    state["iteration"] += 1
+    state["total"] += 1
+    if cfg.rollback and state["iteration"] % ROLLBACK_WINDOW == 0:
+        kept["best"] = _guard(cfg.rollback, history, state, model, optimizer, kept["best"])
 
 
 #: updates per window of the rollback guard
@@ -413,25 +352,13 @@ def _guard(factor: float, history: list[dict], state: dict, model, optimizer, be
     return best
 
 
-def _write_history(history: list[dict], out: Path) -> None:
-    with atomic_path(out / "history.csv") as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["iteration", "stage", "m", "lr", "loss", "skipped"])
-        writer.writeheader()
-        writer.writerows(history)
-    plt = pyplot()
+HISTORY_FIELDS = ("iteration", "stage", "m", "lr", "loss", "skipped")
 
-    it = np.array([h["iteration"] for h in history])
-    loss = np.array([h["loss"] for h in history])
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.semilogy(it, loss, lw=0.5, alpha=0.4, label="loss")
-    if len(loss) >= 20:
-        k = max(1, len(loss) // 50)
-        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
-        ax.semilogy(it[k - 1:], smooth, label=f"mean of {k}")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("unrolled MSE")
-    ax.legend()
-    save_figure(fig, out / "training.png", dpi=120)
+
+def _write_history(history: list[dict], out: Path) -> None:
+    write_history(out / "history.csv", history, HISTORY_FIELDS)
+    plot_history(out / "training.png", {"loss": history}, "iteration", "loss", "iteration",
+                 "unrolled MSE", smooth=max(1, len(history) // 50) if len(history) >= 20 else 0)
 
 
 def describe(model: NeuralStepper) -> str:

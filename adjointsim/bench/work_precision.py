@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from train.atomic import pyplot, save_figure
+from adjointsim.files import pyplot, save_figure
 
 from ..registry import get
 from ..spectral import fft1d, fft2d

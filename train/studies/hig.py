@@ -1,7 +1,7 @@
 """The ``hig`` study: Adam, Gauss–Newton and half-inverse gradients on every HIG problem, over
 seeds, compared at the same wall-clock of updates (``adjointsim study hig [--quick]``).
 
-Each cell is one ``adjointsim hig`` run (:func:`train.hig_problems.train_run`) in its own
+Each cell is one ``adjointsim hig`` run (:func:`adjointsim.train.hig_problems.train_run`) in its own
 directory; its row holds the final test loss, the summed update time ``wall_s`` and the test
 loss at fixed wall-clock ``marks``. The report tables the median over seeds (and the range) at
 each mark, says per problem whether HIG ends below Adam and GN, and draws the loss-versus-time
@@ -16,9 +16,9 @@ from statistics import median
 
 import torch
 
+from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
-from ..atomic import pyplot, save_figure, write_text
 from ..hig_problems import OPTIMIZERS, PROBLEMS, RunConfig, loss_at, read_history
 from ..hig_problems import train_run as _train_run
 

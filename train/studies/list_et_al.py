@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
 from .. import data as datamod
-from ..atomic import pyplot, save_figure, write_text
 from ..evaluate import TEST_SPLITS, evaluate
 from ..trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 

@@ -1,7 +1,7 @@
 """The ``pinn-poisson`` study: the multi-scale Poisson PINN over k × weighting × seeds
 (``adjointsim study pinn-poisson [--quick]``), against the authors' reported errors.
 
-Each cell is one ``adjointsim pinn poisson`` run (:func:`train.pinn.train_run`) in its own
+Each cell is one ``adjointsim pinn poisson`` run (:func:`adjointsim.train.pinn.train_run`) in its own
 directory; its row holds ``k``, ``weighting``, ``seed``, ``epochs`` and the final ``rel_l2``
 on the 100 × 100 grid. The report tables the median over seeds [min, max] per k and weighting
 next to the authors' figure (30,001 epochs, mean of 5 seeds), says per k whether ID is below
@@ -16,9 +16,9 @@ from statistics import median
 
 import torch
 
+from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
-from ..atomic import pyplot, save_figure, write_text
 from ..pinn import REPORTED, PinnConfig, train_run
 
 WEIGHTINGS = ("uniform", "inverse-dirichlet", "max-avg", "fixed")
@@ -158,7 +158,7 @@ register_study(Study(name="pinn-poisson", sizes=tuple(SIZES), cells=cells, run_c
 
 
 # ----------------------------------------------------------------------------- sequential KS
-#: the ``pinn-ks-inverse`` study (:class:`train.pinn.KSInverse`): weightings × seeds
+#: the ``pinn-ks-inverse`` study (:class:`adjointsim.train.pinn.KSInverse`): weightings × seeds
 KS_SIZES = {
     "tiny": {"weightings": ("uniform", "inverse-dirichlet"), "seeds": 1, "epochs": 9,
              "net": {"width": 8, "depth": 2, "collocation": 64, "edge_points": 8,

@@ -1,6 +1,6 @@
 """The stabilised-BPTT study: tasks × complexity levels × gradient-flow modes × clipping × seeds.
 
-Each cell trains one controller (:func:`train.control.train`) in its own run directory and
+Each cell trains one controller (:func:`adjointsim.train.control.train`) in its own run directory and
 returns its row: ``task``, ``level``, ``mode``, ``clip``, ``seed``, ``test_loss`` (final), the
 final training loss, the per-epoch test losses and the time. Sizes:
 
@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
-from ..atomic import pyplot, save_figure, write_text
 from ..control import (
     TASKS,
     ControlConfig,

@@ -1,0 +1,321 @@
+"""The run lifecycle shared by every training and fitting command.
+
+A run lives in one directory: ``config.json``, ``checkpoint.pt``, ``history.csv``, its plots and,
+once finished, ``result.json``. This module holds what every command does the same way:
+
+- the config: a dataclass with :class:`Config` mixed in, loaded from TOML and flags, every key
+  checked for its type and against the command's table of accepted values (:class:`Interval`,
+  a tuple of choices, or a rule in words), errors naming the key;
+- the claim rule (:func:`finished_result`, :func:`claim_new`): a directory holding somebody
+  else's files, a finished run or an unfinished one is never overwritten silently;
+- :func:`require_checkpoint` for ``--resume``, :func:`run_errors` for what Ctrl-C tells the user;
+- the history: :func:`write_history`, :func:`read_history` and one plot, :func:`plot_history`.
+
+The checkpoint format (a SHA-256 digest over the contents) is the torch layer's
+``adjointsim.train.checkpoint``; nothing here imports torch.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import difflib
+import io
+import json
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+from .errors import ConfigTypeError, Interrupted, RunExists, UserError
+from .files import json_text, pyplot, save_figure, write_text
+
+
+# ----------------------------------------------------------------------------- the config
+@dataclass(frozen=True)
+class Interval:
+    """Accepted numbers: lo ≤ x ≤ hi (open ends excluded), always finite."""
+
+    lo: float
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def __contains__(self, x: float) -> bool:
+        return (math.isfinite(x) and (x > self.lo if self.lo_open else x >= self.lo)
+                and (x < self.hi if self.hi_open else x <= self.hi))
+
+    def __str__(self) -> str:
+        if self.hi == math.inf:
+            return f"{'>' if self.lo_open else '≥'} {_num(self.lo)}"
+        return (f"in {'(' if self.lo_open else '['}{_num(self.lo)}, {_num(self.hi)}"
+                f"{')' if self.hi_open else ']'}")
+
+
+def _num(x: float) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
+#: seeds: numpy's SeedSequence takes non-negative integers, torch.manual_seed up to 2⁶⁴ − 1
+SEEDS = Interval(0, 2**63 - 1)
+_TYPE_NAMES = {int: "an integer", float: "a finite number", str: "a string", list: "a list",
+               bool: "true or false"}
+
+
+class Config:
+    """Mixed into a run's config dataclass: :meth:`load` from TOML and overrides, and
+    :meth:`validate` against :attr:`ACCEPTED`, one entry per field (a tuple of choices, an
+    :class:`Interval`, or a rule in words that :meth:`check` enforces)."""
+
+    ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = {}
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, **overrides: Any) -> Any:
+        """A config from a TOML file (optional) with keyword overrides (None means unset);
+        unknown keys, wrong types and values outside :attr:`ACCEPTED` fail naming the key."""
+        values: dict[str, Any] = {}
+        if path is not None:
+            try:
+                with open(path, "rb") as f:
+                    values.update(tomllib.load(f))
+            except FileNotFoundError:
+                raise FileNotFoundError(f"no config file at {path}") from None
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+                raise UserError(f"{path} is not valid TOML: {e}") from None
+            except OSError as e:
+                raise UserError(f"cannot read config {path}: {e.strerror or e}") from None
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        known = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
+        for key in values:
+            if key not in known:
+                close = difflib.get_close_matches(key, known, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise UserError(f"unknown config option {key!r}{hint}; valid options: "
+                                f"{', '.join(known)}")
+        cfg = cls(**values)
+        cfg.validate(f" in {path}" if path is not None else "")
+        return cfg
+
+    def validate(self, where: str = "") -> None:
+        """Check every field's type and accepted values, then :meth:`check`; ints given for
+        float fields become floats."""
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            key, value = f.name, getattr(self, f.name)
+            expected, optional = _unwrap(hints[key])
+            if value is None and optional:
+                continue
+            if expected is float and type(value) is int:
+                value = float(value)
+                setattr(self, key, value)
+            # bool is an int to Python, never to a config
+            wrong_bool = isinstance(value, bool) and expected is not bool
+            if not isinstance(value, expected) or wrong_bool:
+                raise ConfigTypeError(
+                    f"config key {key!r}{where}: {value!r} ({type(value).__name__}) is not "
+                    f"{_TYPE_NAMES[expected]}; accepted: {self.accepted(key)}")
+            rule = self.ACCEPTED.get(key)
+            if isinstance(rule, tuple) and value not in rule:
+                raise UserError(f"config key {key!r}{where}: {value!r} is not one of "
+                                f"{', '.join(map(str, rule))}")
+            if isinstance(rule, Interval) and value not in rule:
+                raise UserError(f"config key {key!r}{where}: {value!r} is not "
+                                f"{self.accepted(key)}")
+            if isinstance(rule, str) and expected is str and not value:
+                raise UserError(f"config key {key!r}{where}: needs {rule}")
+        self.check(where)
+
+    def check(self, where: str) -> None:
+        """Rules that tie keys together, or that :attr:`ACCEPTED` states in words."""
+
+    @classmethod
+    def accepted(cls, key: str) -> str:
+        """What ``key`` accepts, in words."""
+        rule = cls.ACCEPTED[key]
+        if isinstance(rule, tuple):
+            return "one of " + ", ".join(map(str, rule))
+        if isinstance(rule, Interval):
+            kind, _ = _unwrap(typing.get_type_hints(cls)[key])
+            return f"{_TYPE_NAMES[kind]} {rule}"
+        return rule
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+
+def _unwrap(hint: Any) -> tuple[type, bool]:
+    """(the type, whether None is accepted) of an annotation like ``int`` or ``int | None``."""
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        return args[0], True
+    return (typing.get_origin(hint) or hint), False
+
+
+# ----------------------------------------------------------------------------- the history
+def write_history(path: str | Path, rows: Sequence[dict], fields: Sequence[str]) -> None:
+    """``rows`` as CSV with the columns ``fields``, atomically."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(fields), extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, buf.getvalue())
+
+
+def read_history(path: str | Path) -> list[dict]:
+    """The rows of a history CSV, numbers as int or float, True/False as bool."""
+    with open(path, newline="") as f:
+        return [{k: _value(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def _value(text: str) -> Any:
+    if text in ("True", "False"):
+        return text == "True"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def plot_history(path: str | Path, curves: dict[str, Sequence[dict]], x: str, y: str,
+                 xlabel: str, ylabel: str, title: str = "", smooth: int = 0,
+                 log: bool = True, ax: Any = None) -> None:
+    """The history plot of every command: ``y`` against ``x``, one curve per label of
+    ``curves``; with ``smooth`` > 1 each gets its moving mean of that many rows beside it.
+    Non-finite values are left out. Drawn into ``ax`` when given (the caller saves)."""
+    plt = pyplot()
+    fig = None
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+    for label, rows in curves.items():
+        pts = [(r[x], r[y]) for r in rows
+               if isinstance(r.get(y), int | float) and math.isfinite(r[y])]
+        if not pts:
+            continue
+        xs, ys = zip(*pts)
+        line, = ax.plot(xs, ys, lw=0.6 if smooth > 1 else 1.2,
+                        alpha=0.4 if smooth > 1 else 1.0, label=label)
+        if smooth > 1 and len(ys) >= 2 * smooth:
+            k = smooth
+            mean = [sum(ys[i - k + 1:i + 1]) / k for i in range(k - 1, len(ys))]
+            ax.plot(xs[k - 1:], mean, color=line.get_color(), label=f"{label}, mean of {k}")
+    if log:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=9)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    if fig is not None:
+        save_figure(fig, path, dpi=120)
+
+
+# ----------------------------------------------------------------------------- the directory
+def differing(ours: dict, theirs: dict) -> list[str]:
+    """The keys on which two configurations differ (a key only one has counts)."""
+    return sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
+
+
+def read_result(path: Path) -> dict:
+    """A finished run's ``result.json``; a damaged one is ``RunExists`` saying what to do."""
+    try:
+        result = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        result = e
+    if not isinstance(result, dict):
+        raise RunExists(f"{path} is damaged (not a JSON object: {result!s:.80}); delete it to "
+                        "finish the run again from its checkpoint")
+    return result
+
+
+def refuse_foreign(out: Path, config: dict) -> None:
+    """``RunExists`` when ``out`` holds somebody else's files: a ``config.json`` that is not
+    ``config`` (another run, or not a run), or files but no ``config.json`` at all."""
+    path = out / "config.json"
+    if not path.exists():
+        if out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir()):
+            raise RunExists(f"{out} holds other files and no run's config.json; choose a new "
+                            "or empty --out")
+        return
+    try:
+        theirs = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError):
+        theirs = None
+    ours = json.loads(json_text(config))
+    if theirs != ours:
+        what = (f"differs in {', '.join(differing(ours, theirs))}" if isinstance(theirs, dict)
+                else "is not a run's")
+        raise RunExists(f"{out} holds another run or other files (its config.json {what}); "
+                        "choose another --out")
+
+
+@contextmanager
+def run_errors(out: Path) -> Iterator[None]:
+    """How a run's Ctrl-C and file errors reach its command's user: whether ``--resume``
+    applies (a checkpoint exists) or the command is simply run again, and that ``--out``
+    cannot be written, naming it."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        if not (out / "checkpoint.pt").exists():
+            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
+                              "the command again") from None
+        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
+            from None
+    except RunExists:
+        raise
+    except OSError as e:  # the run directory cannot be made or written
+        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
+                      "writable directory") from None
+
+
+def finished_result(out: Path, resume: bool, config: dict | None = None,
+                    keys: Iterable[str] = ()) -> dict | None:
+    """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
+    when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
+    With ``config``, a finished run whose result disagrees with it is ``RunExists`` too, and so
+    is a directory without a run whose ``config.json`` is not ``config`` (somebody else's).
+    A result without ``config``'s keys and ``keys`` is damaged."""
+    result_path = out / "result.json"
+    if result_path.exists():
+        if resume:
+            result = read_result(result_path)
+            ours = json.loads(json_text(config or {}))
+            missing = [k for k in (*ours, *keys) if k not in result]
+            if missing:
+                raise RunExists(f"{result_path} is damaged (it lacks {', '.join(missing)}); "
+                                "delete it to finish the run again from its checkpoint")
+            differ = sorted(k for k, v in ours.items() if result.get(k) != v)
+            if differ:
+                raise RunExists(f"{out} holds a finished run of another configuration "
+                                f"(differs in {', '.join(differ)}); choose another --out")
+            return result
+        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
+    if config is not None:
+        refuse_foreign(out, config)
+    if (out / "checkpoint.pt").exists() and not resume:
+        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+    return None
+
+
+def require_checkpoint(out: Path) -> None:
+    """``--resume`` needs a run to continue: a directory without a checkpoint (or a finished
+    result) is an error that says so, not a silent fresh start."""
+    if not (out / "checkpoint.pt").exists() and not (out / "result.json").exists():
+        raise UserError(f"--resume: {out} holds no checkpoint to continue from; run the "
+                        "command without --resume to start the run")
+
+
+def discard(out: Path, patterns: Iterable[str]) -> None:
+    """``--overwrite``: remove the files of the run in ``out`` (those matching ``patterns``,
+    with ``config.json``, ``checkpoint.pt`` and ``result.json``)."""
+    for pattern in ("config.json", "checkpoint.pt", "result.json", *patterns):
+        for old in out.glob(pattern):
+            old.unlink()

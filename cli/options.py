@@ -1,0 +1,118 @@
+"""The options every command spells the same way, and typed flags made from a config dataclass.
+
+``--out DIR`` the run directory, ``--resume`` / ``--overwrite`` what to do with a run already
+there, ``--config FILE.toml`` a file of config keys (flags override it), ``--seed N``,
+``--json PATH`` rows as JSON, ``--no-progress`` no progress bar, ``--threads N`` torch threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+
+def at_least(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer lo ≤ n (≤ hi)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < lo or (hi is not None and value > hi):
+            bound = f"≥ {lo}" if hi is None else f"in [{lo}, {hi}]"
+            raise argparse.ArgumentTypeError(f"must be {bound}, not {value}")
+        return value
+
+    return parse
+
+
+def out_option(p: argparse.ArgumentParser, default: str) -> None:
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help=f"the run directory (default {default})")
+
+
+def seed_option(p: argparse.ArgumentParser, default: int | None = 0) -> None:
+    p.add_argument("--seed", type=at_least(0, 2**63 - 1), default=default,
+                   help=f"random seed, ≥ 0 (default {default})")
+
+
+def json_option(p: argparse.ArgumentParser, help_text: str = "also write the result rows "
+                "here as JSON") -> None:
+    p.add_argument("--json", type=Path, default=None, metavar="PATH", help=help_text)
+
+
+def progress_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress bar")
+
+
+def threads_option(p: argparse.ArgumentParser, default: int | None = 1) -> None:
+    p.add_argument("--threads", type=at_least(1), default=default,
+                   help=f"torch threads (default {default})")
+
+
+def run_options(p: argparse.ArgumentParser, out_default: str, config: bool = True) -> None:
+    """``--out``, ``--resume`` / ``--overwrite`` (one of them), ``--config`` and
+    ``--no-progress``: what every training and fitting command takes."""
+    out_option(p, out_default)
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the unfinished run in --out from its checkpoint")
+    again.add_argument("--overwrite", action="store_true",
+                       help="discard the run already in --out and start again")
+    if config:
+        p.add_argument("--config", type=Path, default=None, metavar="FILE.toml",
+                       help="config keys from a TOML file; flags override them")
+    progress_option(p)
+
+
+def config_flags(p: argparse.ArgumentParser, cls: type, accepted: dict[str, Any],
+                 skip: tuple[str, ...] = (), helps: dict[str, str] | None = None) -> None:
+    """One ``--key`` flag per field of the config dataclass ``cls``: typed from its annotation,
+    with the accepted choices or range from ``accepted`` and its default in the help. Unset
+    flags are None, so a ``--config`` file's value stands unless a flag overrides it."""
+    hints = typing.get_type_hints(cls)
+    group = p.add_argument_group(f"{cls.__name__} keys (also accepted in --config)")
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        kind = hints[f.name]
+        rule = accepted.get(f.name)
+        default = (f.default if f.default is not dataclasses.MISSING
+                   else f.default_factory())  # type: ignore[misc]
+        text = (helps or {}).get(f.name, "")
+        kwargs: dict[str, Any] = {"dest": f.name, "default": None}
+        if isinstance(rule, tuple):
+            kwargs["choices"] = rule
+            kwargs["metavar"] = "{" + ",".join(map(str, rule)) + "}"
+        elif rule is not None and not isinstance(rule, str):
+            text = f"{text}; {rule}" if text else str(rule)
+        if kind in (int, float, str):
+            kwargs["type"] = _typed(kind, f.name)
+        else:
+            kwargs["type"] = str
+        p_help = f"{text + '; ' if text else ''}default {default!r}"
+        group.add_argument("--" + f.name.replace("_", "-"), help=p_help, **kwargs)
+
+
+def _typed(kind: type, key: str) -> Callable[[str], Any]:
+    def parse(text: str) -> Any:
+        try:
+            return kind(text)
+        except ValueError:
+            what = {int: "an integer", float: "a number"}.get(kind, kind.__name__)
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+def overrides(args: argparse.Namespace, cls: type) -> dict[str, Any]:
+    """The config keys set on the command line (None: not given)."""
+    return {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
+            if getattr(args, f.name, None) is not None}

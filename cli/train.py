@@ -1,0 +1,51 @@
+"""``adjointsim train``: a neural time-stepper trained through a solver, resumable."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from adjointsim.errors import UserError
+
+from .options import config_flags, overrides, run_options
+
+_HELPS = {
+    "mode": "the unrolling schedule ONE, or a gradient flow (WIG, NOG; R, M, S, N, C)",
+    "setup": "the network predicts the next state, or corrects the coarse solver's",
+    "curriculum": 'stages "m:lr,m:lr,...", e.g. "1:1e-4,2:1e-5,4:1e-6"',
+    "max_iterations": "stop after this many iterations in total (0: no limit)",
+}
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    from adjointsim.train.trainer import TrainConfig
+
+    run_options(p, "runs/ks")
+    config_flags(p, TrainConfig, TrainConfig.ACCEPTED, skip=("out",), helps=_HELPS)
+
+
+def run(args: argparse.Namespace) -> int:
+    from adjointsim.train.trainer import TrainConfig, build_model, describe, train
+
+    from adjointsim.run import require_checkpoint, run_errors
+
+    values = overrides(args, TrainConfig)
+    if args.out is not None:
+        values["out"] = str(args.out)
+    if values.get("curriculum"):
+        text = values["curriculum"]
+        try:
+            stages = (s.split(":") for s in text.split(","))
+            values["curriculum"] = [[int(m), float(lr)] for m, lr in stages]
+        except ValueError:
+            raise UserError(f"--curriculum {text!r} is not a list of stages m:lr, e.g. "
+                            '"1:1e-4,2:1e-5"') from None
+    cfg = TrainConfig.load(args.config, **values)
+    out = Path(cfg.out)
+    if args.resume:
+        require_checkpoint(out)
+    print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
+    with run_errors(out):
+        train(cfg, resume=args.resume, progress=args.progress, overwrite=args.overwrite)
+    print(f"run in {out}")
+    return 0
