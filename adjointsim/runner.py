@@ -40,7 +40,6 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-# The project's one atomic writer; train/__init__ imports nothing, so this loads no torch.
 from adjointsim.files import write_text
 
 ROW_FILE = "row.json"
@@ -49,7 +48,9 @@ _ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THR
 
 @dataclass(frozen=True)
 class Study:
-    """A grid of independent cells (see ``STUDY_INTERFACE.md``)."""
+    """A grid of independent cells: ``cells(size, seeds)`` lists them (each a dict with an
+    ``id``), ``run_cell(cell, out)`` runs one in its own directory and returns its row, and
+    ``report(rows, out)`` writes the tables and plots and returns the text to print."""
 
     name: str
     sizes: tuple[str, ...]
@@ -377,16 +378,21 @@ def _connect(address: str):
 
 @cache
 def source_fingerprint() -> dict:
-    """This installation's version and a hash of its source files (adjointsim, train, nets),
-    so that a worker running other code, even uncommitted edits, is found before any work."""
+    """This installation's version and a hash of its source files (every package under
+    ``adjointsim``: the solvers, the torch layer, the networks, the command line), so that a
+    worker running other code, even uncommitted edits, is found before any work."""
+    import importlib.util
+
     import adjointsim
 
-    root = Path(adjointsim.__file__).resolve().parent.parent
     digest = hashlib.sha256()
-    for package in ("adjointsim", "train", "nets"):
-        for path in sorted((root / package).rglob("*.py")):
-            digest.update(str(path.relative_to(root)).encode())
-            digest.update(path.read_bytes())
+    # find_spec locates the subpackages without importing them (no torch here)
+    for package in ("adjointsim", "adjointsim.train", "adjointsim.nets", "adjointsim.cli"):
+        spec = importlib.util.find_spec(package)
+        for root in spec.submodule_search_locations or ():
+            for path in sorted(Path(root).rglob("*.py")):
+                digest.update(f"{package}/{path.relative_to(root)}".encode())
+                digest.update(path.read_bytes())
     return {"version": adjointsim.__version__, "source": digest.hexdigest()[:16]}
 
 

@@ -55,7 +55,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         if name == command:  # the others' modules stay unimported
             mod = importlib.import_module(f"{__name__}.{module}")
             mod.arguments(p)
-            p.set_defaults(run=mod.run)
+            p.set_defaults(_command=mod.run)
     return parser
 
 
@@ -65,9 +65,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     bugs raise."""
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command is None and not {"-h", "--help", "--version"} & set(argv):
+        build_parser().print_help(sys.stderr)
+        return 2
     try:
         args = build_parser(command).parse_args(argv)
-        status = args.run(args)
+        status = args._command(args)
         sys.stdout.flush()
         return status
     except BrokenPipeError:  # `adjointsim ... | head`: the reader has all it wants
@@ -84,7 +87,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"adjointsim {command}: {' '.join(str(message).split())}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

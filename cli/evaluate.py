@@ -4,6 +4,7 @@ and ``metrics.json`` written beside them."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from .options import at_least
@@ -20,12 +21,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from adjointsim.files import json_text, write_json
     from adjointsim.train import data
     from adjointsim.train.evaluate import evaluate
     from adjointsim.train.studies.list_et_al import STUDIES, load_model
     from adjointsim.train.trainer import DTYPES
-
-    from adjointsim.files import json_text, write_json
 
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run} does not exist or is not a directory; give the "
@@ -39,5 +39,5 @@ def run(args: argparse.Namespace) -> int:
                        args.run, args.long_steps)
     write_json(args.run / "metrics.json", metrics)
     print(json_text(metrics))
-    print(f"wrote {args.run / 'metrics.json'}")
+    print(f"wrote {args.run / 'metrics.json'}", file=sys.stderr)  # stdout stays JSON
     return 0

@@ -25,9 +25,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.train.trainer import TrainConfig, build_model, describe, train
-
     from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.train.trainer import TrainConfig, build_model, describe, train
 
     values = overrides(args, TrainConfig)
     if args.out is not None:

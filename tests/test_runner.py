@@ -17,9 +17,9 @@ from pathlib import Path
 
 import _runner_cells  # noqa: F401  (registers the "runner-test" study)
 import pytest
-from adjointsim.train.cli import main
 
 from adjointsim import runner
+from adjointsim.cli import main
 
 TESTS = Path(__file__).resolve().parent
 

@@ -10,6 +10,8 @@ import time
 import numpy as np
 import pytest
 import torch
+
+from adjointsim.errors import UserError
 from adjointsim.train import bridge
 from adjointsim.train import data as datamod
 from adjointsim.train.model import NeuralStepper
@@ -22,8 +24,6 @@ from adjointsim.train.trainer import (
     train,
 )
 from adjointsim.train.unroll import unrolled_loss
-
-from adjointsim.errors import UserError
 
 
 @pytest.fixture(scope="module")
@@ -236,6 +236,42 @@ def test_evaluating_an_unfinished_run_warns(tiny, tmp_path):
         load_model(tmp_path / "cut")
 
 
+def test_ctrl_c_leaves_a_checkpoint_that_resumes_to_the_same_weights(tiny, tmp_path):
+    """Ctrl-C before the first periodic checkpoint still saves one, between two updates, and
+    --resume ends with the weights of an uninterrupted run; --resume without a checkpoint is
+    one line and exit 2."""
+    args = ["--data", str(tiny), "--width", "4", "--blocks", "1", "--unroll", "2", "--epochs",
+            "6", "--batch", "2", "--checkpoint-every", "100000", "--mode", "WIG"]
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    cmd = [sys.executable, "-m", "adjointsim.cli", "train"]
+    nothing = subprocess.run(cmd + args + ["--out", str(tmp_path / "none"), "--resume"],
+                             env=env, capture_output=True, text=True)
+    assert nothing.returncode == 2 and "no checkpoint" in nothing.stderr
+    assert len(nothing.stderr.strip().splitlines()) == 1
+    subprocess.run(cmd + args + ["--out", str(tmp_path / "a")], check=True, env=env,
+                   capture_output=True)
+    proc = subprocess.Popen(cmd + args + ["--out", str(tmp_path / "b")], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    config = tmp_path / "b" / "config.json"
+    deadline = time.time() + 300
+    while not config.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    time.sleep(0.5)  # into the updates
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    assert "continue with --resume" in err
+    ckpt = tmp_path / "b" / "checkpoint.pt"
+    done = load_checkpoint(ckpt)["state"]
+    assert not done.get("finished"), "the run finished before it could be interrupted"
+    subprocess.run(cmd + args + ["--out", str(tmp_path / "b"), "--resume"], check=True, env=env,
+                   capture_output=True)
+    a = load_checkpoint(tmp_path / "a" / "checkpoint.pt")["model"]
+    b = load_checkpoint(ckpt)["model"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+
+
 def test_killed_run_resumes_to_the_uninterrupted_weights(tiny, tmp_path):
     args = ["--data", str(tiny), "--width", "4", "--blocks", "1", "--unroll", "2", "--epochs",
             "6", "--batch", "2", "--checkpoint-every", "2", "--mode", "NOG"]
@@ -434,10 +470,9 @@ def test_evaluation_rollout_keeps_going_when_one_trajectory_blows_up():
 def test_tiny_study_end_to_end_and_resumes(tmp_path):
     import json
 
-    from adjointsim.train.cli import main
-    from adjointsim.train.studies import load_all
-
+    from adjointsim.cli import main
     from adjointsim.runner import run
+    from adjointsim.train.studies import load_all
 
     load_all()
     out = tmp_path / "study"
@@ -464,13 +499,9 @@ def test_tiny_study_end_to_end_and_resumes(tmp_path):
 @pytest.mark.parametrize("argv, size", [([], "full"), (["--quick"], "quick"),
                                         (["--size", "tiny"], "tiny")])
 def test_study_command_sizes(argv, size):
-    import argparse
+    from adjointsim.cli import build_parser
 
-    from adjointsim.train.cli import add_commands
-
-    parser = argparse.ArgumentParser()
-    add_commands(parser.add_subparsers(dest="command"))
-    assert parser.parse_args(["study", "ks", *argv]).size == size
+    assert build_parser("study").parse_args(["study", "ks", *argv]).size == size
 
 
 def test_rollback_guard_restores_the_best_weights_and_halves_the_rate(tiny, tmp_path,

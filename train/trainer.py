@@ -24,11 +24,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from adjointsim.nets import DilatedResNet, ResNet, UNet, parameter_count
 from tqdm.auto import tqdm
 
 from adjointsim.errors import RunExists, UserError
 from adjointsim.files import uninterrupted, write_text
+from adjointsim.nets import DilatedResNet, ResNet, UNet, parameter_count
 from adjointsim.run import SEEDS, Config, Interval, discard, plot_history, write_history
 
 from . import data as datamod
@@ -36,7 +36,7 @@ from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
-from .unroll import MODES, GradientFlow, unrolled_loss
+from .unroll import MODES, GradientFlow, schedule, unrolled_loss
 
 CONV_NETS = {"resnet": ResNet, "dilated": DilatedResNet, "unet": UNet}
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -149,16 +149,13 @@ def build_model(cfg: TrainConfig) -> NeuralStepper:
 
 
 def _plan(cfg: TrainConfig, n_windows_fn) -> list[dict]:
-    """Per stage: unroll m, batch size, epochs and iterations per epoch (ONE scales by m)."""
+    """Per stage: the flow, unroll horizon, batch size, iterations per epoch and in all."""
     plan = []
     for m, lr in cfg.stages():
-        one = cfg.mode == "ONE"
-        batch = cfg.batch * m if one else cfg.batch
-        epochs = cfg.epochs * m if one else cfg.epochs
-        horizon = 1 if one else m
+        flow, horizon, batch, epochs = schedule(cfg.mode, m, cfg.batch, cfg.epochs)
         n = n_windows_fn(horizon + cfg.warmup + 1)
         per_epoch = max(1, n // batch)
-        plan.append({"m": horizon, "lr": lr, "batch": batch,
+        plan.append({"flow": flow, "m": horizon, "lr": lr, "batch": batch,
                      "iterations": int(math.ceil(epochs * per_epoch)), "per_epoch": per_epoch})
     return plan
 
@@ -301,7 +298,7 @@ def _iteration(cfg, stage, wins, offsets, frames_all, params_all, cond_all, mode
         group["lr"] = lr
     optimizer.zero_grad(set_to_none=True)
     try:
-        flow = GradientFlow(cfg.mode)
+        flow = GradientFlow(stage["flow"])
         loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], flow,
                              cfg.warmup, cfg.truncate)
         skipped = not torch.isfinite(loss)

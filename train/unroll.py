@@ -9,7 +9,10 @@ One switch, :class:`GradientFlow`, says where gradients stop (Schnell & Thuerey 
 * S (stopped): stop both paths.                         List et al.'s NOG is S.
 * N: stop the physics path only.
 * C (combined): g = where(sign(g_M) == sign(g_R), g_M, 0), element-wise per tensor.
-* ONE: List et al.'s one-step training, R with a horizon of 1.
+
+Beside the flows stands one more way to train a target horizon m, List et al.'s ONE: a
+schedule, not a flow (:func:`schedule`): one-step training (R over a horizon of 1) with the
+batch and the epochs scaled by m, so that it sees as many frames as an unrolled run.
 
 C needs g_M and g_R. Both come from ONE forward pass and ONE backward pass over a doubled
 batch: the loop runs two copies of each state with equal values (:meth:`GradientFlow.start`),
@@ -35,18 +38,30 @@ from dataclasses import dataclass
 
 import torch
 
-#: canonical gradient-flow modes and List et al.'s names
+#: the gradient flows, and List et al.'s names for two of them
 FLOWS = ("R", "M", "S", "N", "C")
-ALIASES = {"WIG": "R", "NOG": "S", "ONE": "R"}
+ALIASES = {"WIG": "R", "NOG": "S"}
+#: every way to train a horizon: the one-step schedule ONE, or unrolled with a gradient flow
 MODES = ("ONE", "NOG", "WIG", *FLOWS)
 CLIPS = ("none", "value", "norm")
 
 
 def canonical(mode: str) -> str:
-    """R/M/S/N/C for any accepted mode name (ONE/NOG/WIG map to R/S/R)."""
-    if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    """R/M/S/N/C for a gradient flow's name (WIG and NOG are R and S)."""
+    if mode not in (*ALIASES, *FLOWS):
+        extra = "; ONE is a schedule (see schedule())" if mode == "ONE" else ""
+        raise ValueError(f"unknown gradient flow {mode!r}; choose from "
+                         f"{', '.join((*ALIASES, *FLOWS))}{extra}")
     return ALIASES.get(mode, mode)
+
+
+def schedule(mode: str, m: int, batch: int, epochs: float) -> tuple[str, int, int, float]:
+    """(flow, horizon, batch, epochs) that train target horizon ``m`` with ``mode``: ONE trains
+    one step with flow R on ``m`` × the batch for ``m`` × the epochs; a flow unrolls ``m``."""
+    if mode == "ONE":
+        return "R", 1, batch * m, epochs * m
+    canonical(mode)
+    return mode, m, batch, epochs
 
 
 class _Switch:
@@ -222,8 +237,8 @@ def unrolled_loss(
     The model runs from u_0; the first w steps are the warm-up ("pushforward": no tape, not in
     the loss) and the loss is the mean over s = 1..m of MSE(û_{w+s}, u_{w+s}). ``mode`` is a
     mode name or a :class:`GradientFlow` (needed for C, whose update then comes from
-    ``flow.backward(loss, params)``). ONE needs m = 1 (the trainer scales batch size and epochs
-    by the target m). ``truncate=k`` detaches the state every k steps (truncated BPTT).
+    ``flow.backward(loss, params)``). ``truncate=k`` detaches the state every k steps
+    (truncated BPTT).
     """
     name = mode.name if isinstance(mode, GradientFlow) else mode
     flow = mode if isinstance(mode, GradientFlow) else GradientFlow(mode)
@@ -232,9 +247,8 @@ def unrolled_loss(
         raise ValueError(f"mode {name!r} needs a GradientFlow: pass flow = GradientFlow("
                          f"{name!r}) and take the update from flow.backward(loss, params)")
     m = frames.shape[1] - 1 - warmup
-    if m < 1 or (name == "ONE" and m != 1):
-        need = "1" if name == "ONE" else "m ≥ 1"
-        raise ValueError(f"{name} needs windows of warmup + {need} + 1 frames")
+    if m < 1:
+        raise ValueError(f"{name} needs windows of warmup + m + 1 frames, m ≥ 1")
     u = frames[:, 0]
     if warmup:
         with torch.no_grad():
