@@ -107,7 +107,7 @@ class Config:
         hints = typing.get_type_hints(type(self))
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
             key, value = f.name, getattr(self, f.name)
-            expected, optional = _unwrap(hints[key])
+            expected, optional = unwrap(hints[key])
             if value is None and optional:
                 continue
             if expected is float and type(value) is int:
@@ -140,7 +140,7 @@ class Config:
         if isinstance(rule, tuple):
             return "one of " + ", ".join(map(str, rule))
         if isinstance(rule, Interval):
-            kind, _ = _unwrap(typing.get_type_hints(cls)[key])
+            kind, _ = unwrap(typing.get_type_hints(cls)[key])
             return f"{_TYPE_NAMES[kind]} {rule}"
         return rule
 
@@ -148,7 +148,7 @@ class Config:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
 
 
-def _unwrap(hint: Any) -> tuple[type, bool]:
+def unwrap(hint: Any) -> tuple[type, bool]:
     """(the type, whether None is accepted) of an annotation like ``int`` or ``int | None``."""
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
         args = [a for a in typing.get_args(hint) if a is not type(None)]

@@ -15,7 +15,9 @@ coefficients), one cell of the ``stability`` study (:mod:`adjointsim.runner`) fi
 Verdicts: ``ok`` (stated within −5 %/+100 % of found), ``stated too large`` (the scheme accepts
 a Δt that blows up), ``conservative`` (stable up to more than twice the stated limit),
 ``missing`` (no stated limit, but a finite one found), ``unconditional`` (neither found up to
-the cap). Long rollouts run as cells on the runner (``adjointsim stability --jobs/--cluster``).
+the cap). Each scheme, grid and coefficient set is one cell of ``adjointsim study stability``
+(``--jobs``/``--cluster`` spread them): ``--size full`` sweeps every such scheme on the grids
+above, ``quick`` every scheme on two small grids, ``tiny`` two schemes (one without a grid).
 """
 
 from __future__ import annotations
@@ -32,10 +34,13 @@ from . import registry
 from .runner import Study, register_study
 from .stepper import Stepper
 
-#: per size: grid sizes of 1D and 2D scenes, rollout length
+#: per size: the schemes (None: every one with a time step), grid sizes of 1D and 2D scenes,
+#: rollout length
 SIZES = {
-    "tiny": {"1d": (16, 32), "2d": (16,), "steps": 200},
-    "full": {"1d": (32, 64, 128, 256), "2d": (16, 32, 64), "steps": 1000},
+    "tiny": {"schemes": ("advection1d-upwind", "oscillators-rk4"), "1d": (16, 32), "2d": (16,),
+             "steps": 200},
+    "quick": {"schemes": None, "1d": (16, 32), "2d": (16,), "steps": 200},
+    "full": {"schemes": None, "1d": (32, 64, 128, 256), "2d": (16, 32, 64), "steps": 1000},
 }
 CAP = 2.0**14  # the search stops at this multiple of the scene's default Δt
 GROWTH = 1e4
@@ -63,12 +68,13 @@ def _coefficients(name: str) -> list[dict]:
     return [{}, {"nu": 10 * nu.default}]
 
 
-def cells(names: list[str] | None, size: str, seeds: int | None) -> list[dict]:
-    steps = SIZES[size]["steps"]
+def cells(size: str, seeds: int | None) -> list[dict]:
+    """One cell per scheme of the size, coefficient set and grid (no seeds: deterministic)."""
+    spec = SIZES[size]
     return [{"id": "-".join([name, *([f"n{n}"] if n else []),
                              *(f"{k}{v:g}" for k, v in coef.items())]),
-             "scheme": name, "n": n, "coefficients": coef, "steps": steps}
-            for name in (names or schemes()) for coef in _coefficients(name)
+             "scheme": name, "n": n, "coefficients": coef, "steps": spec["steps"]}
+            for name in (spec["schemes"] or schemes()) for coef in _coefficients(name)
             for n in _grids(name, size)]
 
 
@@ -237,43 +243,4 @@ def report(rows: list[dict], out: Path) -> str:
     return text
 
 
-def study(names: list[str] | None = None) -> Study:
-    return Study("stability", tuple(SIZES), partial(cells, names), run_cell, report)
-
-
-register_study(study())
-
-
-def command(names: list[str], everything: bool, size: str, jobs: int, cluster: str | None,
-            retries: int, out: str | None, json_path: str | None) -> int:
-    """``adjointsim stability``: run the cells, print the table; exit 1 if a cell failed."""
-    import sys
-
-    from adjointsim.files import write_text
-
-    from . import runner
-
-    if everything == bool(names):
-        raise ValueError("name schemes or pass --all (see adjointsim gradcheck --list)")
-    valid = schemes()
-    for name in names:
-        registry.get(name)  # unknown names fail before any work
-        if name not in valid:
-            raise ValueError(f"{name} has no time step to sweep; choose from {valid}")
-    register_study(study(names or None))
-    out_dir = Path(out or f"runs/stability{'' if size == 'full' else '-' + size}")
-    failed: list[tuple[str, str]] = []
-    try:
-        rows = runner.run("stability", out_dir, size, None, cluster=cluster, jobs=jobs,
-                          retries=retries)
-    except runner.CellsFailed as e:
-        rows, failed = e.rows, e.failures
-    print(table(rows))
-    plotted = any(r["n"] for r in rows)  # report() plots against the grid size only
-    print(f"table: {out_dir / 'stability.md'}"
-          + (f"; plot: {out_dir / 'stability.png'}" if plotted else ""))
-    if json_path:
-        write_text(json_path, runner.dumps(rows) + "\n")
-    for cell_id, error in failed:
-        print(f"adjointsim stability: cell {cell_id} failed: {error}", file=sys.stderr)
-    return 1 if failed else 0
+register_study(Study("stability", tuple(SIZES), cells, run_cell, report))

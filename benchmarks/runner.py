@@ -4,7 +4,7 @@
 
 * engine overhead: a study of ``--tiny`` cells that do nothing, on a 2-worker local cluster
   (start, submit, gather, stop; the workers importing the project included) against the same
-  cells run here (``--cluster none``). Target (issue 12): ≤ 2 s.
+  cells run here (``--cluster none``). Target: ≤ 2 s.
 * equal cells: ``--cells`` cells of about ``--seconds`` of one-thread torch work each, on the
   2-worker local cluster (cluster start included) against ``--cluster none`` (one torch thread
   here too). Target: local ≤ 0.6 × none. Cells of 15 s by default: the cells of the

@@ -1,4 +1,4 @@
-"""The spectral solvers side by side with their peers, against the targets of issue 3.
+"""The spectral solvers side by side with their peers, against their targets.
 
     python benchmarks/spectral.py [--repeats 9] [--memory-steps 10000] [--quick]
 
@@ -223,7 +223,7 @@ def fmt_ratio(a: float | None, b: float | None) -> str:
 
 
 def report(ks: dict, ns: dict, mem: dict, note: str) -> str:
-    """The markdown tables: timings, memory, and the targets of issue 3 marked met / not met."""
+    """The markdown tables: timings, memory, and the targets marked met / not met."""
     b1, b64 = ks[1], ks[64]
     us = 1e-6
     lines = [
@@ -318,7 +318,7 @@ def report(ks: dict, ns: dict, mem: dict, note: str) -> str:
         (f"{mem['steps']}-step adjoint with checkpointing holds ≤ {CHECKPOINT} states",
          (mem[CHECKPOINT]["held"], "states"), CHECKPOINT, "≤"),
     ]
-    lines += ["", "| target (issue 3) | measured | |", "|---|---|---|"]
+    lines += ["", "| target | measured | |", "|---|---|---|"]
     for text, (value, what), bound, sense in targets:
         if value is None:
             lines.append(f"| {text} | – ({what}) | not measured |")

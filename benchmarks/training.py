@@ -7,7 +7,7 @@ Side by side in one run:
   the share of it spent in the solver's forward + adjoint;
 * the same WIG iteration with a pure-torch (torch.fft) ETD1 solver under autograd;
 * NOG and ONE iterations, for the ratio NOG / (m × ONE).
-Targets (issue 4): solver ≤ 20% of the WIG iteration; ≥ 3× faster than the torch-solver
+Targets: solver ≤ 20% of the WIG iteration; ≥ 3× faster than the torch-solver
 iteration; NOG ≤ 1.1 × m × ONE.
 """
 

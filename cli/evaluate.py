@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
     from adjointsim.files import json_text, write_json
     from adjointsim.train import data
     from adjointsim.train.evaluate import evaluate
-    from adjointsim.train.studies.list_et_al import STUDIES, load_model
+    from adjointsim.train.studies.neural_steppers import STUDIES, load_model
     from adjointsim.train.trainer import DTYPES
 
     if not args.run.is_dir():

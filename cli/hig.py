@@ -1,8 +1,55 @@
-"""``adjointsim hig``: training through a solver with half-inverse gradients."""
+"""``adjointsim hig``: a network trained through a solver with half-inverse gradients,
+Gauss-Newton or Adam, for a budget of update time, resumable."""
 
 from __future__ import annotations
 
-from adjointsim.train.hig_problems import add_arguments as arguments
-from adjointsim.train.hig_problems import main as run
+import argparse
+from pathlib import Path
 
-__all__ = ["arguments", "run"]
+from .options import at_least, config_flags, overrides, run_options, threads_option
+
+_HELPS = {
+    "optimizer": "half-inverse gradients, Gauss-Newton or Adam, each with the problem's batch "
+    "size and learning rate",
+    "size": "tiny shrinks the data sets (for tests); quick is full",
+}
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    from adjointsim.train.hig_problems import BUDGETS, PROBLEMS, HigConfig
+
+    p.add_argument("problem", choices=PROBLEMS, help="the problem (config key problem)")
+    run_options(p, "runs/hig-PROBLEM-OPTIMIZER-seedSEED")
+    # budget and max_updates accept None (the problem's budget, no limit), so their flags are
+    # spelled here rather than by config_flags
+    config_flags(p, HigConfig, HigConfig.ACCEPTED, skip=("problem", "budget", "max_updates"),
+                 helps=_HELPS)
+    defaults = ", ".join(f"{k} {v:g}" for k, v in BUDGETS.items())
+    p.add_argument("--time-budget", dest="budget", type=float, default=None, metavar="SECONDS",
+                   help="seconds of update time, > 0 (config key budget; default per problem: "
+                   f"{defaults})")
+    p.add_argument("--max-updates", dest="max_updates", type=at_least(1), default=None,
+                   metavar="N", help="stop after this many updates (config key max_updates; "
+                   "default: no limit)")
+    threads_option(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.train.hig_problems import HigConfig, train_run
+
+    cfg = HigConfig.load(args.config, **overrides(args, HigConfig))
+    out = args.out or Path("runs") / f"hig-{cfg.problem}-{cfg.optimizer}-seed{cfg.seed}"
+    if args.resume:
+        require_checkpoint(out)
+    torch.set_num_threads(args.threads)
+    with run_errors(out):
+        result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
+                           progress=args.progress)
+    loss = result["test_loss"]
+    print(f"{cfg.problem}/{cfg.optimizer} seed {cfg.seed}: {result['updates']} updates in "
+          f"{result['wall_s']:.1f} s, test loss "
+          f"{'diverged' if loss is None else f'{loss:.4g}'}; run in {out}")
+    return 0

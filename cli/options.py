@@ -14,6 +14,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from adjointsim.run import unwrap
+
 
 def at_least(lo: int, hi: int | None = None) -> Callable[[str], int]:
     """An argparse type: an integer lo ≤ n (≤ hi)."""
@@ -81,7 +83,7 @@ def config_flags(p: argparse.ArgumentParser, cls: type, accepted: dict[str, Any]
     for f in dataclasses.fields(cls):
         if f.name in skip:
             continue
-        kind = hints[f.name]
+        kind, _ = unwrap(hints[f.name])
         rule = accepted.get(f.name)
         default = (f.default if f.default is not dataclasses.MISSING
                    else f.default_factory())  # type: ignore[misc]

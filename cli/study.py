@@ -45,10 +45,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Every unfinished cell through :func:`adjointsim.runner.run`; exit 1 if any failed (each
     failure is printed with its cell id), after the report of what finished."""
-    from adjointsim.train.studies import load_all
-
     from adjointsim import runner
     from adjointsim.files import write_json
+    from adjointsim.train.studies import load_all
 
     load_all()
     suffix = "" if args.size == "full" else f"-{args.size}"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import nn
 
@@ -18,13 +20,15 @@ ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "gelu": nn.GELU, "silu": nn.SiL
 class MLP(nn.Module):
     def __init__(
         self, in_features: int, out_features: int, width: int = 64, depth: int = 3,
-        activation: str = "tanh",
+        activation: str = "tanh", widths: Sequence[int] | None = None,
     ):
+        """``widths``: the hidden layers' widths, one per layer, in place of ``width`` and
+        ``depth`` (for networks whose layers differ in width)."""
         super().__init__()
         if activation not in ACTIVATIONS:
             choices = sorted(ACTIVATIONS)
             raise ValueError(f"unknown activation {activation!r}; choose from {choices}")
-        sizes = [in_features] + [width] * depth
+        sizes = [in_features] + (list(widths) if widths is not None else [width] * depth)
         layers: list[nn.Module] = []
         for a, b in zip(sizes[:-1], sizes[1:]):
             layers += [nn.Linear(a, b), ACTIVATIONS[activation]()]

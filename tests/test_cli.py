@@ -42,7 +42,7 @@ def _one_line_error(capsys, *argv, command):
 
 
 def test_train_refuses_an_existing_run_unless_resume_or_overwrite(tiny, tmp_path, capsys):
-    """Defect 3: a second `train` into the same --out used to overwrite the finished run."""
+    """a second `train` into the same --out used to overwrite the finished run."""
     out = tmp_path / "run"
     args = ["train", "--data", tiny, "--out", out, *TINY]
     assert _run(capsys, *args)[0] == 0
@@ -72,7 +72,7 @@ def test_train_refuses_an_existing_run_unless_resume_or_overwrite(tiny, tmp_path
     ("mode = 3", "mode", "3 (int)", "a string"),
 ])
 def test_wrong_toml_types_name_key_value_and_type(tmp_path, capsys, toml, key, shown, expected):
-    """Defect 9: `unroll = "3"` failed deep inside training without naming the key."""
+    """`unroll = "3"` failed deep inside training without naming the key."""
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(toml + "\n")
     err = _one_line_error(capsys, "train", "--config", cfg, "--out", tmp_path / "r",
@@ -103,7 +103,7 @@ def test_unknown_keys_and_broken_toml(tmp_path, capsys):
     ("curriculum = [[2, -1e-3]]", "stage [2, -0.001] is not an [m, lr] pair"),
 ])
 def test_nonsensical_values_are_rejected_with_the_range(tmp_path, capsys, toml, message):
-    """Defect 9: `lr_decay = -1` (gradient ascent every other step) used to exit 0."""
+    """`lr_decay = -1` (gradient ascent every other step) used to exit 0."""
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(toml + "\n")
     err = _one_line_error(capsys, "train", "--config", cfg, command="train")
@@ -142,7 +142,7 @@ def test_study_counts_must_be_positive(capsys, flag):
 
 
 def test_user_errors_print_one_line_without_a_traceback(tmp_path):
-    """Defect 9: the torch commands printed a Python traceback for a bad config."""
+    """the torch commands printed a Python traceback for a bad config."""
     cfg = tmp_path / "cfg.toml"
     cfg.write_text('unroll = "3"\n')
     proc = subprocess.run([sys.executable, "-m", "adjointsim.cli", "train", "--config", str(cfg)],
@@ -187,7 +187,7 @@ def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path,
 
 
 def test_eval_missing_directory_and_bad_horizons(tiny, tmp_path, capsys):
-    """Defect 9: a missing run was 'not a readable checkpoint'; --horizon 0 became 12 and a
+    """a missing run was 'not a readable checkpoint'; --horizon 0 became 12 and a
     horizon beyond the data was cut silently, writing Infinity into the JSON."""
     err = _one_line_error(capsys, "eval", tmp_path / "nowhere", command="eval")
     assert "does not exist" in err and "readable" not in err

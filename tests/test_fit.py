@@ -113,31 +113,33 @@ def test_fit_reports_a_non_finite_start():
 
 def test_fit_command(tmp_path, capsys):
     from adjointsim.cli import main
-    from adjointsim.fit_cli import demo_problem, write_observations
+    from adjointsim.fit_run import demo_problem, write_observations
 
     out = tmp_path / "ks"
-    assert main(["fit", "--demo", "ks-params", "--out", str(out), "--quiet"]) == 0
-    for name in ("history.csv", "result.json", "fitted.h5", "fit.png", "history.png"):
+    assert main(["fit", "--demo", "ks-params", "--out", str(out), "--no-progress"]) == 0
+    for name in ("config.json", "history.csv", "result.json", "fitted.h5", "fit.png",
+                 "history.png", "observations.h5"):
         assert (out / name).is_file(), name
     result = json.loads((out / "result.json").read_text())
     assert max(result["param_rel_error"].values()) <= 1e-6
     rows = (out / "history.csv").read_text().splitlines()
     assert rows[0].startswith("iteration,misfit") and len(rows) == result["iterations"] + 2
     capsys.readouterr()
-    assert main(["fit", "--demo", "ks-params", "--out", str(out), "--quiet"]) == 2
-    assert "holds a finished fit" in capsys.readouterr().err
+    assert main(["fit", "--demo", "ks-params", "--out", str(out), "--no-progress"]) == 2
+    assert "holds a finished run" in capsys.readouterr().err
     # a file of one's own: the Burgers reconstruction from its file, a few iterations
     obs = tmp_path / "obs.h5"
     write_observations(obs, demo_problem("burgers"))
     assert main(["fit", "burgers1d-rusanov", "--observations", str(obs), "--maxiter", "5",
-                 "--out", str(tmp_path / "b"), "--quiet", "--no-plots"]) == 0
+                 "--out", str(tmp_path / "b"), "--no-progress", "--no-plots"]) == 0
     assert json.loads((tmp_path / "b" / "result.json").read_text())["iterations"] == 5
+    assert not (tmp_path / "b" / "fit.png").exists()
     import h5py
 
     with h5py.File(obs, "a") as f:  # an integer u0 is a real starting guess
         f["u0"] = np.zeros(f["states"].shape[1:], dtype=np.int64)
     assert main(["fit", "burgers1d-rusanov", "--observations", str(obs), "--maxiter", "1",
-                 "--out", str(tmp_path / "int"), "--quiet", "--no-plots"]) == 0
+                 "--out", str(tmp_path / "int"), "--no-progress", "--no-plots"]) == 0
     complex_obs = tmp_path / "complex.h5"
     write_observations(complex_obs, demo_problem("burgers"))
     with h5py.File(complex_obs, "a") as f:
@@ -156,14 +158,134 @@ def test_fit_command(tmp_path, capsys):
         (["--observations", str(obs), "--wrt", "state,alpha"], "unknown wrt entry 'alpha'"),
         (["--observations", str(tmp_path / "none.h5")], "does not exist"),
         (["--observations", str(obs), "--bounds", "nu=1"], "NAME=LO:HI"),
+        (["--observations", str(obs), "--noise", "0.1"], "--noise adds noise to a demo's"),
+        (["--demo", "burgers", "--observations", str(obs)], "drop --observations"),
+        ([], "give SCENE --observations FILE.h5, or --demo"),
     ]:
-        assert main(["fit", *argv, "--out", str(tmp_path / "x"), "--quiet"]) == 2
+        assert main(["fit", *argv, "--out", str(tmp_path / "x"), "--no-progress"]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
+    # every input is checked before anything is written
+    assert not (tmp_path / "x").exists()
+
+
+def _fit(out, *flags):
+    from adjointsim.cli import main
+
+    return main(["fit", "--demo", "burgers-nu", "--maxiter", "3", "--out", str(out),
+                 "--no-progress", "--no-plots", *flags])
+
+
+def test_fit_resume_and_overwrite(tmp_path, capsys):
+    """A fit keeps no checkpoint: --resume returns a finished fit as it is and starts an
+    unfinished one again; --overwrite runs it again; a fit of another config is refused."""
+    out = tmp_path / "nu"
+    assert _fit(out, "--resume") == 2  # nothing there to resume
+    assert "holds no checkpoint" in capsys.readouterr().err and not out.exists()
+    assert _fit(out, "--json", str(tmp_path / "r.json")) == 0
+    first = (out / "result.json").read_text()
+    assert json.loads((tmp_path / "r.json").read_text()) == json.loads(first)
+    stamp = (out / "result.json").stat().st_mtime_ns
+    assert _fit(out) == 2
+    assert "holds a finished run" in capsys.readouterr().err
+    assert _fit(out, "--resume") == 0  # returned as it is, not run again
+    assert (out / "result.json").stat().st_mtime_ns == stamp
+    assert "misfit" in capsys.readouterr().out
+    # another configuration in the same directory: refused, resumed or not
+    assert _fit(out, "--tikhonov", "0.1") == 2
+    assert "differs in tikhonov" in capsys.readouterr().err
+    assert _fit(out, "--tikhonov", "0.1", "--resume") == 2
+    # interrupted before result.json: --resume starts it again, with the same result
+    (out / "result.json").unlink()
+    assert _fit(out, "--resume") == 0
+    same = json.loads((out / "result.json").read_text())
+    assert {**same, "seconds": 0} == {**json.loads(first), "seconds": 0}
+    # --overwrite discards the fit there, even one of another configuration
+    assert _fit(out, "--tikhonov", "0.1", "--overwrite") == 0
+    assert json.loads((out / "config.json").read_text())["tikhonov"] == 0.1
+    # a directory of somebody else's files is never a fit's
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert _fit(other) == 2 and _fit(other, "--overwrite") == 2
+    assert (other / "notes.txt").read_text() == "mine"
+
+
+def test_fit_config_file(tmp_path, capsys):
+    from adjointsim.cli import main
+
+    good = tmp_path / "fit.toml"
+    good.write_text('demo = "burgers-nu"\nmaxiter = 2\nbounds = ["nu=0:0.02"]\n')
+    out = tmp_path / "cfg"
+    assert main(["fit", "--config", str(good), "--maxiter", "3", "--out", str(out),
+                 "--no-progress", "--no-plots"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["maxiter"] == 3 and config["bounds"] == ["nu=0:0.02"]  # the flag wins
+    capsys.readouterr()
+    for text, key in [('demo = "burgers-nu"\nmaxiter = "five"\n', "'maxiter'"),
+                      ('demo = "burgers-nu"\ntikhonov = true\n', "'tikhonov'"),
+                      ('demo = "burgers-nu"\nbounds = "nu=0:1"\n', "'bounds'"),
+                      ('demo = "heat"\n', "'demo'"),
+                      ('demo = "burgers-nu"\nmaxiters = 3\n', "did you mean 'maxiter'")]:
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text)
+        assert main(["fit", "--config", str(bad), "--out", str(tmp_path / "y")]) == 2
+        err = capsys.readouterr().err
+        assert key in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "y").exists()
+
+
+def _rows(path):
+    return json.loads(path.read_text())
+
+
+def test_studies_are_registered_and_write_only_their_directory(tmp_path, monkeypatch, capsys):
+    """fit-params, burgers-dp-pinn and burgers-nu-dp-pinn run their cells through the runner
+    into runs/study-NAME-SIZE; nothing is written under docs/."""
+    from adjointsim.cli import main
+    from adjointsim.fit_study import ROW_KEYS
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "fit-params", "--size", "tiny", "--cluster", "none",
+                 "--no-progress"]) == 0
+    out = tmp_path / "runs" / "study-fit-params-tiny"
+    rows = _rows(out / "fit-params.json")
+    assert [(r["problem"], r["noise"], r["parameter"]) for r in rows] == [
+        ("ks-params", 0.0, "anti_diffusion"), ("ks-params", 0.0, "hyper_diffusion"),
+        ("ks-params", 0.01, "anti_diffusion"), ("ks-params", 0.01, "hyper_diffusion"),
+        ("burgers-nu", 0.0, "nu"), ("burgers-nu", 0.01, "nu")]
+    assert all(tuple(r) == ROW_KEYS for r in rows)
+    assert max(r["rel_error"] for r in rows if r["noise"] == 0) < 1e-10
+    assert "| burgers-nu | nu |" in (out / "fit-params.md").read_text()
+    assert (out / "fit-params.png").stat().st_size > 0
+    assert main(["study", "burgers-dp-pinn", "--size", "tiny", "--cluster", "none",
+                 "--no-progress"]) == 0
+    out = tmp_path / "runs" / "study-burgers-dp-pinn-tiny"
+    result = _rows(out / "fit-burgers.json")
+    assert set(result) >= {"rows", "pinn_config", "pinn_history", "dp_history"}
+    methods = [r["method"] for r in result["rows"]]
+    assert methods[:2] == ["DP, L-BFGS-B, 3 iterations", "DP, L-BFGS-B, 10 iterations"]
+    # the PINN within DP's run time (which epoch depends on the timing) and at its end
+    assert all(m.startswith("PINN, Adam, uniform weights, ") for m in methods[2:-1])
+    assert methods[-2] == "PINN, Adam, uniform weights, 20 epochs"
+    assert methods[-1] == "book's DP (phiflow/TF, 50 gradient steps)"
+    assert all(set(r) == {"method", "misfit", "u0_mse", "seconds"} for r in result["rows"])
+    assert (out / "fit-burgers.md").is_file() and (out / "fit-burgers.png").is_file()
+    assert main(["study", "burgers-nu-dp-pinn", "--size", "tiny", "--cluster", "none",
+                 "--no-progress"]) == 0
+    out = tmp_path / "runs" / "study-burgers-nu-dp-pinn-tiny"
+    rows = _rows(out / "fit-params-pinn.json")
+    assert [(r["method"].split(" ")[0], r["noise"]) for r in rows] == [
+        ("DP", 0.0), ("PINN,", 0.0), ("DP", 0.01), ("PINN,", 0.01)]
+    assert all(set(r) == {"method", "noise", "nu", "rel_error", "seconds"} for r in rows)
+    assert rows[0]["rel_error"] < 1e-10
+    assert (out / "fit-params-pinn.md").is_file() and (out / "fit-params-pinn.png").is_file()
+    assert not (tmp_path / "docs").exists()
 
 
 def test_burgers_pinn_residual_and_training():
     import torch
+
     from adjointsim.train.burgers_pinn import NU, BurgersPinn, BurgersPinnConfig, train_pinn
 
     x = np.linspace(-1, 1, 16, endpoint=False) + 1 / 16

@@ -8,18 +8,18 @@ import math
 import numpy as np
 import pytest
 import torch
+
+from adjointsim.errors import RunExists
+from adjointsim.run import read_history
+from adjointsim.solvers.oscillators import Oscillators
 from adjointsim.train.hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 from adjointsim.train.hig_problems import (
-    RunConfig,
-    RunExists,
-    laplacian,
+    HigConfig,
+    five_point_laplacian,
     make_problem,
     phiflow_noise,
-    read_history,
     train_run,
 )
-
-from adjointsim.solvers.oscillators import Oscillators
 
 STEPS = 6
 
@@ -234,7 +234,7 @@ def test_poisson_data_and_laplacian_agree_with_the_solver():
     solver = Poisson2D(n=8, bc="dirichlet")
     f = np.random.default_rng(0).standard_normal((5, 1, 8, 8))
     u = solver.solve(f)  # (−Δ_h) u = f
-    lap = laplacian(torch.from_numpy(u.reshape(5, 64)), solver.inv_h2, 8)
+    lap = five_point_laplacian(torch.from_numpy(u.reshape(5, 64)), solver.inv_h2, 8)
     np.testing.assert_allclose(lap.numpy(), -f.reshape(5, 64), atol=1e-11)
     p = make_problem("poisson", 0, "tiny")
     y, _, target = p.test
@@ -268,7 +268,7 @@ def test_quantum_targets_are_normalised_and_the_loss_is_an_infidelity():
 
 
 def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch):
-    cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=6)
+    cfg = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=6)
     calls = {"n": 0}
     real_step = HalfInverseGradients.step
 
@@ -294,14 +294,14 @@ def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch)
     with pytest.raises(RunExists, match="finished"):
         train_run(cfg, tmp_path, progress=False)
     assert train_run(cfg, tmp_path, resume=True, progress=False) == result
-    other = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=5)
+    other = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=5)
     with pytest.raises(RunExists, match="differs in max_updates"):
         train_run(other, tmp_path, resume=True, progress=False)
     assert json.loads((tmp_path / "result.json").read_text())["optimizer"] == "hig"
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
-    cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=2)
+    cfg = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=2)
     train_run(cfg, tmp_path, progress=False, plot=False)
     (tmp_path / "result.json").unlink()
     (tmp_path / "checkpoint.pt").write_text("garbage\n")
@@ -313,14 +313,14 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
 
 
 def test_a_run_stopped_after_its_last_checkpoint_resumes_without_a_second_row(tmp_path):
-    cfg = RunConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=3)
+    cfg = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=3)
     first = train_run(cfg, tmp_path, progress=False, plot=False)
     rows = read_history(tmp_path / "history.csv")
     (tmp_path / "result.json").unlink()  # Ctrl-C while plotting: no result yet
     again = train_run(cfg, tmp_path, resume=True, progress=False, plot=False)
     assert str(read_history(tmp_path / "history.csv")) == str(rows) and again == first
-    with pytest.raises(ValueError, match=r"seed must be in 0..2\*\*63 - 1, not -1"):
-        RunConfig("chain", "hig", seed=-1, budget=1.0).validate()
+    with pytest.raises(ValueError, match=rf"'seed': -1 is not an integer in \[0, {2**63 - 1}\]"):
+        HigConfig("chain", "hig", seed=-1, budget=1.0).validate()
 
 
 def test_cli_runs_and_refuses_in_one_line(tmp_path, capsys):
@@ -335,9 +335,91 @@ def test_cli_runs_and_refuses_in_one_line(tmp_path, capsys):
     assert len(err) == 1 and "finished run" in err[0]
 
 
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_cli_resume_without_a_checkpoint_is_one_line(tmp_path, capsys):
+    from adjointsim.cli import main
+
+    out = tmp_path / "empty"
+    out.mkdir()
+    assert main(["hig", "chain", "--resume", "--out", str(out), "--no-progress"]) == 2
+    assert "holds no checkpoint" in _one_line(capsys)
+
+
+def test_cli_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
+    from adjointsim.cli import main
+
+    out = tmp_path / "run"
+    args = ["hig", "chain", "--size", "tiny", "--out", str(out), "--no-progress"]
+    assert main([*args, "--max-updates", "3"]) == 0
+    assert main([*args, "--max-updates", "2"]) == 2  # another run is there: refused
+    assert "finished run" in _one_line(capsys)
+    assert main([*args, "--max-updates", "2", "--overwrite"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["updates"] == 2 and result["max_updates"] == 2
+    assert read_history(out / "history.csv")[-1]["update"] == 2
+
+
+def test_cli_config_file_sets_keys_and_names_a_wrong_typed_one(tmp_path, capsys):
+    from adjointsim.cli import main
+
+    good = tmp_path / "good.toml"
+    good.write_text('optimizer = "adam"\nsize = "tiny"\nmax_updates = 2\nbudget = 50\n')
+    out = tmp_path / "run"
+    assert main(["hig", "chain", "--config", str(good), "--max-updates", "1", "--out", str(out),
+                 "--no-progress"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config == {"problem": "chain", "optimizer": "adam", "seed": 0, "budget": 50.0,
+                      "size": "tiny", "max_updates": 1}  # the flag overrides the file
+    bad = tmp_path / "bad.toml"
+    bad.write_text('max_updates = "three"\n')
+    assert main(["hig", "chain", "--config", str(bad), "--out", str(tmp_path / "other")]) == 2
+    assert "'max_updates'" in _one_line(capsys)
+    assert HigConfig.load(problem="chain").budget == 100.0  # the problem's default
+
+
+def test_cli_help_lists_the_choices(capsys):
+    from adjointsim.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["hig", "--help"])
+    assert stop.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for part in ("{oscillators,quantum,poisson,chain}", "{adam,gn,hig}", "{tiny,quick,full}",
+                 "--time-budget", "--max-updates", "--resume", "--overwrite", "--config",
+                 "--seed", "--threads", "--no-progress", "chain 100"):
+        assert part in text, part
+
+
+def test_cli_ctrl_c_leaves_a_checkpoint_to_resume(tmp_path, capsys, monkeypatch):
+    from adjointsim.cli import main
+
+    calls = {"n": 0}
+    real_step = HalfInverseGradients.step
+
+    def interrupted(self, *a):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the warm-up is call 1: interrupt after 1 timed update
+            raise KeyboardInterrupt
+        return real_step(self, *a)
+
+    monkeypatch.setattr(HalfInverseGradients, "step", interrupted)
+    out = tmp_path / "run"
+    args = ["hig", "chain", "--size", "tiny", "--max-updates", "3", "--out", str(out),
+            "--no-progress"]
+    assert main(args) == 130
+    assert f"continue with --resume --out {out}" in _one_line(capsys)
+    assert (out / "checkpoint.pt").exists() and not (out / "result.json").exists()
+    assert main([*args, "--resume"]) == 0
+    assert json.loads((out / "result.json").read_text())["updates"] == 3
+
+
 def test_tiny_study_end_to_end(tmp_path):
     import adjointsim.train.studies.hig as study
-
     from adjointsim.runner import run
 
     rows = run("hig", tmp_path, "tiny", None, cluster="none", progress=False)
@@ -358,7 +440,6 @@ def test_tiny_study_end_to_end(tmp_path):
 @pytest.mark.slow
 def test_quick_study_reproduces_hig_below_adam_on_the_linear_chain(tmp_path):
     import adjointsim.train.studies.hig  # noqa: F401
-
     from adjointsim.runner import run
 
     rows = run("hig", tmp_path, "quick", 3, cluster="local", jobs=2, progress=False)

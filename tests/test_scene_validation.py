@@ -1,4 +1,4 @@
-"""Scene validation (issue 8, defect 8): every constructor argument of every registered solver is
+"""Scene validation: every constructor argument of every registered solver is
 checked, with an error naming the argument; minimal and odd grids work or are refused clearly;
 explicit schemes accept Δt at their stated limit and refuse it just beyond, naming the limit."""
 

@@ -1,5 +1,5 @@
-"""adjointsim stability: bisection on Δt finds the FTCS diffusion limit 0.5 h²/ν that the scheme
-states, and the sweep runs as cells of the study runner."""
+"""adjointsim study stability: bisection on Δt finds the FTCS diffusion limit 0.5 h²/ν that the
+scheme states, and the sweep runs as cells of the study runner."""
 
 from __future__ import annotations
 
@@ -25,26 +25,32 @@ def test_verdicts(stated, found, verdict):
     assert stability.verdict(stated, found) == verdict
 
 
-def test_stability_command(tmp_path):
+def test_stability_study(tmp_path, capsys):
     out = tmp_path / "st"
-    argv = ["stability", "advection1d-upwind", "--size", "tiny", "--cluster", "none",
+    argv = ["study", "stability", "--size", "tiny", "--cluster", "none", "--no-progress",
             "--out", str(out), "--json", str(tmp_path / "rows.json")]
     assert main(argv) == 0
     rows = json.loads((tmp_path / "rows.json").read_text())
-    assert [r["n"] for r in rows] == [16, 32]
+    assert [(r["scheme"], r["n"]) for r in rows] == [
+        ("advection1d-upwind", 16), ("advection1d-upwind", 32), ("oscillators-rk4", None)]
     # Upwind: |a| Δt / h ≤ 1, so Δt ≤ h for a = 1 on the unit interval.
-    for r in rows:
+    for r in rows[:2]:
         assert r["stated"] == pytest.approx(1 / r["n"], rel=1e-3) and r["verdict"] == "ok"
     assert "| advection1d-upwind | 32 |" in (out / "stability.md").read_text()
+    assert "| oscillators-rk4 | – |" in capsys.readouterr().out
     assert (out / "stability.png").stat().st_size > 0
-    assert main(["stability", "poisson2d", "--cluster", "none"]) == 2  # no time step
 
 
-def test_stability_command_without_grids_names_no_plot(tmp_path, capsys):
-    # oscillators-rk4 has no grid size: no plot is drawn, so none is announced
-    out = tmp_path / "osc"
-    assert main(["stability", "oscillators-rk4", "--size", "tiny", "--cluster", "none",
-                 "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert f"table: {out / 'stability.md'}" in printed
-    assert not (out / "stability.png").exists() and "stability.png" not in printed
+def test_stability_report_of_schemes_without_grids_draws_no_plot(tmp_path):
+    # oscillators-rk4 has no grid size: the plot is against the grid size, so none is drawn
+    cell = stability.cells("tiny", None)[-1]
+    assert cell["scheme"] == "oscillators-rk4" and cell["n"] is None
+    text = stability.report([{**cell, **stability.run_cell(cell, tmp_path)}], tmp_path)
+    assert "| oscillators-rk4 | – |" in text
+    assert (tmp_path / "stability.md").is_file() and not (tmp_path / "stability.png").exists()
+
+
+def test_every_scheme_is_in_the_larger_sizes():
+    swept = {c["scheme"] for c in stability.cells("quick", None)}
+    assert swept == set(stability.schemes()) == {c["scheme"] for c in
+                                                 stability.cells("full", None)}

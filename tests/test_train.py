@@ -223,7 +223,7 @@ def test_resume_after_interruption_gives_the_same_weights(tiny, tmp_path):
 
 
 def test_evaluating_an_unfinished_run_warns(tiny, tmp_path):
-    from adjointsim.train.studies.list_et_al import load_model
+    from adjointsim.train.studies.neural_steppers import load_model
 
     train(_config(tiny, tmp_path / "cut", max_iterations=2), progress=False)
     with pytest.warns(UserWarning, match="unfinished run.*--resume"):
@@ -318,7 +318,7 @@ def _flip_bit(path, offset, bit):
 
 
 def test_a_flipped_bit_in_a_dataset_is_detected(tiny, tmp_path):
-    """Defect 10: one flipped exponent bit (|u| 3.35 → 4.6e19) used to load without complaint."""
+    """one flipped exponent bit (|u| 3.35 → 4.6e19) used to load without complaint."""
     import shutil
 
     import h5py
@@ -356,7 +356,7 @@ def test_datasets_without_checksums_load_with_a_warning(tiny, tmp_path):
 
 
 def test_a_flipped_bit_in_a_checkpoint_is_detected(tiny, tmp_path):
-    """Defect 10: a flipped bit in a checkpoint's tensors used to load without complaint."""
+    """a flipped bit in a checkpoint's tensors used to load without complaint."""
     train(_config(tiny, tmp_path / "r", setup="prediction", max_iterations=1), progress=False)
     path = tmp_path / "r" / "checkpoint.pt"
     weights = load_checkpoint(path)["model"]

@@ -6,37 +6,35 @@ are the N = 128 cell values of the true solution at t = 0.5 (step 16 of Δt = 1/
 boundary values u(±1, t) = 0.
 
 * DP: :func:`adjointsim.fit.fit` of the initial state, from zero, through the Rusanov solver's
-  hand-written adjoint (:func:`adjointsim.fit_cli.pbdl_scene`; the observations come from the
+  hand-written adjoint (:func:`adjointsim.fit_run.pbdl_scene`; the observations come from the
   same scene), L-BFGS-B.
 * PINN: u(x, t) an MLP (tanh, 8 × 20, as the book's), trained with Adam on three terms: the data
   at t = 0.5, the Burgers residual at collocation points of [−1, 1] × [0, 1] (u_t, u_x, u_xx
-  from the forward Taylor jets of :mod:`adjointsim.nets.taylor`, no nested autograd) and the boundary
-  values, through :mod:`adjointsim.train.weighting` (uniform by default: inverse-Dirichlet weighting
-  drives the network to the trivial u ≈ 0 here, see :class:`BurgersPinnConfig`).
+  from the forward Taylor jets of :mod:`adjointsim.nets.taylor`, no nested autograd) and the
+  boundary values, through :mod:`adjointsim.train.weighting` (uniform by default:
+  inverse-Dirichlet weighting drives the network to the trivial u ≈ 0 here, see
+  :class:`BurgersPinnConfig`).
 
 For both: the misfit (MSE) at t = 0.5 against the observations, the MSE of the reconstructed
 u(·, 0) against −sin(πx) on the cell centres, and the run time (CPU seconds of this process on one
 thread, robust to a loaded machine; the DP time excludes numba's one-off compilation). The PINN
-runs in float32 (as the book's), DP in float64. ``python -m adjointsim.train.burgers_pinn --out docs`` writes
-``fit-burgers.md``, ``fit-burgers.json`` and ``fit-burgers.png`` (the book's side-by-side plots
-and the misfit over run time).
+runs in float32 (as the book's), DP in float64. The comparison and the viscosity inverse problem
+are the studies ``adjointsim study burgers-dp-pinn`` and ``adjointsim study burgers-nu-dp-pinn``
+(:mod:`adjointsim.train.studies.burgers`).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
+
 from adjointsim.nets.mlp import MLP
 from adjointsim.nets.taylor import jets
-from torch import nn
-
-from adjointsim.files import pyplot, save_figure, write_json, write_text
 
 from .weighting import Weighting
 
@@ -172,151 +170,25 @@ def train_pinn(x: np.ndarray, observed: np.ndarray, cfg: BurgersPinnConfig,
     return net, prob, history
 
 
-def run_dp(maxiter: int) -> dict:
-    """The DP side: fit u_0 from zero to the t = 0.5 state of the PBDL scene."""
-    from adjointsim.fit import fit
-    from adjointsim.fit_cli import PBDL_T_OBS_STEP, pbdl_scene
+def pbdl_data() -> tuple[Any, np.ndarray, np.ndarray]:
+    """The PBDL scene, its true initial state −sin(πx) and the observed state at t = 0.5,
+    each (1, 1, N)."""
+    from adjointsim.fit_run import PBDL_T_OBS_STEP, pbdl_scene
 
     scene = pbdl_scene()
     u0 = scene.pbdl_state()
-    observed = scene.rollout(u0, PBDL_T_OBS_STEP)
+    return scene, u0, scene.rollout(u0, PBDL_T_OBS_STEP)
+
+
+def run_dp(maxiter: int) -> dict:
+    """The DP side: fit u_0 from zero to the t = 0.5 state of the PBDL scene."""
+    from adjointsim.fit import fit
+    from adjointsim.fit_run import PBDL_T_OBS_STEP
+
+    scene, u0, observed = pbdl_data()
     obs = {PBDL_T_OBS_STEP: observed}
     fit(scene, obs, maxiter=2)  # numba compilation, not timed
     r = fit(scene, obs, wrt="state", maxiter=maxiter, tol=0.0)
     return {"scene": scene, "x": scene.nodes(), "observed": observed[0, 0], "u0": u0[0, 0],
             "result": r, "misfit": r.misfit, "u0_mse": float(np.mean((r.state - u0) ** 2)),
             "seconds": r.history[-1]["cpu_seconds"], "iterations": r.iterations}
-
-
-def compare(out: Path, pinn_seconds: float, dp_iterations: tuple[int, ...] = (30, 500),
-            seed: int = 0, progress: bool = True) -> dict:
-    """Run DP and the PINN (at DP's run time and at ``pinn_seconds``); write the table, JSON
-    and plots into ``out`` as ``fit-burgers.*``."""
-    torch.set_num_threads(1)
-    dp = {m: run_dp(m) for m in dp_iterations}
-    main = dp[max(dp_iterations)]
-    cfg = BurgersPinnConfig(seed=seed, seconds=pinn_seconds)
-    net, prob, history = train_pinn(main["x"], main["observed"], cfg, progress)
-    # the PINN at DP's run time: the last history row within it (rows every log_every epochs)
-    rows = []
-    for m, d in dp.items():
-        rows.append({"method": f"DP, L-BFGS-B, {m} iterations", "misfit": d["misfit"],
-                     "u0_mse": d["u0_mse"], "seconds": d["seconds"]})
-    for budget in sorted({main["seconds"], history[-1]["seconds"]}):
-        within = [h for h in history if h["seconds"] <= budget] or history[:1]
-        h = within[-1]
-        rows.append({"method": f"PINN, Adam, {cfg.weighting} weights, {h['epoch']} epochs",
-                     "misfit": h["misfit"], "u0_mse": h["u0_mse"], "seconds": h["seconds"]})
-    rows.append({"method": "book's DP (phiflow/TF, 50 gradient steps)",
-                 "misfit": BOOK_DP["misfit"], "u0_mse": float("nan"),
-                 "seconds": BOOK_DP["seconds"]})
-    lines = ["| method | misfit (MSE) at t = 0.5 | MSE of u(·, 0) vs −sin(πx) | seconds |",
-             "|---|---|---|---|"]
-    for r in rows:
-        u0 = "–" if math.isnan(r["u0_mse"]) else f"{r['u0_mse']:.3g}"
-        lines.append(f"| {r['method']} | {r['misfit']:.3g} | {u0} | {r['seconds']:.3g} |")
-    text = "\n".join(lines)
-    about = (f"PBDL's Burgers reconstruction (observations at t = 0.5 only): "
-             f"`python -m adjointsim.train.burgers_pinn --out docs --pinn-seconds {pinn_seconds:g}`. "
-             "CPU seconds of one thread (DP without numba's compilation); the PINN rows are its "
-             "last logged state (every 50 epochs) within DP's run time and at its budget. "
-             "Plots: fit-burgers.png.\n\n")
-    plot(out / "fit-burgers.png", main, net, prob, history)
-    write_text(out / "fit-burgers.md", about + text + "\n")
-    write_json(out / "fit-burgers.json", {"rows": rows, "pinn_config": asdict(cfg),
-                                          "pinn_history": history,
-                                          "dp_history": main["result"].history})
-    print(text)
-    return {"rows": rows}
-
-
-def plot(path: Path, dp: dict, net: nn.Module, prob: BurgersPinn, history: list[dict]) -> None:
-    plt = pyplot()
-
-    x = dp["x"]
-    with torch.no_grad():
-        pinn_obs = prob.u(net, prob.obs_in).numpy().ravel()
-        pinn_u0 = prob.u(net, prob.init_in).numpy().ravel()
-    fig, ax = plt.subplots(1, 3, figsize=(14, 3.6))
-    ax[0].plot(x, dp["observed"], "k.", ms=3, label="observed")
-    ax[0].plot(x, dp["result"].predicted[16][0, 0], "C0-", label="DP")
-    ax[0].plot(x, pinn_obs, "C1-", label="PINN")
-    ax[0].set(title="t = 0.5 (the observations)", xlabel="x")
-    ax[1].plot(x, dp["u0"], "k--", label="true −sin(πx)")
-    ax[1].plot(x, dp["result"].state[0, 0], "C0-", label="DP")
-    ax[1].plot(x, pinn_u0, "C1-", label="PINN")
-    ax[1].set(title="t = 0 (reconstructed)", xlabel="x")
-    dph = dp["result"].history
-    ax[2].loglog([max(h["cpu_seconds"], 1e-4) for h in dph], [h["misfit"] for h in dph], "C0-",
-                 label="DP")
-    ax[2].loglog([h["seconds"] for h in history], [h["misfit"] for h in history], "C1-",
-                 label="PINN")
-    ax[2].axhline(BOOK_DP["misfit"], color="gray", ls=":", label="book's DP after 132 s")
-    ax[2].set(title="misfit at t = 0.5 over run time", xlabel="CPU seconds (one thread)",
-              ylabel="MSE")
-    for a in ax:
-        a.legend(fontsize=7)
-    save_figure(fig, path, dpi=100)
-
-
-def nu_study(out: Path, seconds: float, noises: tuple[float, ...] = (0.0, 0.01), seed: int = 0,
-             progress: bool = True) -> str:
-    """The viscosity from the same data (:func:`adjointsim.fit_cli.demo_problem` "burgers-nu":
-    every step of the PBDL trajectory, ν from 2 ν_true): DP against the PINN inverse problem
-    (ν learned with the network); ``OUT/fit-params-pinn.md`` and ``.json``."""
-    from adjointsim.fit import fit
-    from adjointsim.fit_cli import demo_problem, make_scene
-
-    torch.set_num_threads(1)
-    rows = []
-    for noise in noises:
-        prob = demo_problem("burgers-nu", noise, seed)
-        scene = make_scene(prob["scene"], prob["config"])
-        obs = {int(k): v for k, v in zip(prob["steps"], prob["states"])}
-        fit(scene, obs, wrt="nu", u0=prob["u0"], params=prob["params"], maxiter=1)  # compile
-        r = fit(scene, obs, wrt="nu", u0=prob["u0"], params=prob["params"],
-                bounds=prob["bounds"], tol=1e-30)
-        rows.append({"method": "DP (adjointsim.fit)", "noise": noise, "nu": r.params["nu"],
-                     "rel_error": abs(r.params["nu"] / NU - 1),
-                     "seconds": r.history[-1]["cpu_seconds"]})
-        cfg = BurgersPinnConfig(seed=seed, seconds=seconds, learn_nu=True,
-                                nu_start=prob["params"]["nu"])
-        times = tuple(float(k) * scene.dt for k in prob["steps"])
-        _, _, history = train_pinn(scene.nodes(), prob["states"][:, 0, 0], cfg, progress, times)
-        h = history[-1]
-        rows.append({"method": f"PINN, ν learned ({h['epoch']} epochs)", "noise": noise,
-                     "nu": h["nu"], "rel_error": abs(h["nu"] / NU - 1),
-                     "seconds": h["seconds"]})
-    lines = ["The viscosity ν = 0.01/π of the PBDL Burgers trajectory (all 32 steps observed, "
-             "N = 128), from ν = 0.02/π: `python -m adjointsim.train.burgers_pinn --nu-study --out docs` "
-             "(CPU seconds, one thread).", "",
-             "| method | noise | fitted ν | rel. error | seconds |", "|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {r['method']} | {r['noise']:.0%} | {r['nu']:.8g} | "
-                     f"{r['rel_error']:.2g} | {r['seconds']:.3g} |")
-    text = "\n".join(lines)
-    write_text(out / "fit-params-pinn.md", text + "\n")
-    write_json(out / "fit-params-pinn.json", rows)
-    print(text)
-    return text
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default="docs")
-    p.add_argument("--pinn-seconds", type=float, default=60.0,
-                   help="the PINN's training budget (default 60 s)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--nu-study", action="store_true", help="the viscosity inverse problem, DP "
-                   "against the PINN (fit-params-pinn.*) instead of the reconstruction")
-    args = p.parse_args(argv)
-    if args.nu_study:
-        nu_study(Path(args.out), args.pinn_seconds, seed=args.seed, progress=not args.quiet)
-    else:
-        compare(Path(args.out), args.pinn_seconds, seed=args.seed, progress=not args.quiet)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,11 +1,11 @@
 """Half-inverse gradients (HIG) and Gauss–Newton for networks trained through a solver.
 
-Schnell, Holl & Thuerey, "Half-Inverse Gradients for Physical Deep Learning" (ICLR 2022); see
-``shared/papers/hig.md``. A network f(x; θ) feeds a differentiable physics map y = P(f; c)
-(c: per-sample context, e.g. the initial state) and a per-sample loss L(y, y*). For a batch of
-b samples, J = ∂y/∂θ stacks the per-sample Jacobians row-wise, sample-major, into a
-(b·d_y) × |θ| matrix (columns: the parameters in ``model.parameters()`` order), and
-g = ∂(Σ L / b)/∂y is stacked the same way. With the thin SVD J = U Σ Vᵀ the update is
+Schnell, Holl & Thuerey, "Half-Inverse Gradients for Physical Deep Learning" (ICLR 2022). A
+network f(x; θ) feeds a differentiable physics map y = P(f; c) (c: per-sample context, e.g. the
+initial state) and a per-sample loss L(y, y*). For a batch of b samples, J = ∂y/∂θ stacks the
+per-sample Jacobians row-wise, sample-major, into a (b·d_y) × |θ| matrix (columns: the
+parameters in ``model.parameters()`` order), and g = ∂(Σ L / b)/∂y is stacked the same way.
+With the thin SVD J = U Σ Vᵀ the update is
 
     Δθ = −η V Σ^(−κ) Uᵀ g,   singular values σ ≤ τ σ_max dropped (not clamped),
 
@@ -31,7 +31,7 @@ b·d_y physics rows; h: the layer's input), so J Jᵀ and Jᵀ w come from per-l
 (:class:`LayerFactors`), at Σ n_out instead of |θ| multiply-adds per Gram entry. Equal to the
 explicit route to 1e-15 relative.
 
-Cost (``python benchmarks/hig.py``, one thread, float64, medians, 2026-11-25, output in
+Cost (``python benchmarks/hig.py``, one thread, float64, medians; a recorded output is
 ``docs/bench-hig-2026-11-25.txt``): one oscillators update (batch 128, 512 rows) 95 ms =
 network 2% + physics 22% + decomposition 68% (nearly all of it the eigendecomposition of the
 512 × 512 Gram matrix) + apply 1%. The direction of one update by layer factors against the

@@ -1,6 +1,8 @@
-"""The half-inverse gradients problems, their training loop and ``adjointsim hig``.
+"""The half-inverse gradients problems and their timed, resumable training runs
+(``adjointsim hig``).
 
-Problems (settings from ``shared/papers/hig.md``; deviations are marked):
+Problems, with the settings of Schnell, Holl & Thuerey (ICLR 2022) and their reference code
+(deviations are marked):
 
 * ``oscillators``: 2 coupled nonlinear oscillators (``oscillators-rk4``, Δt = 0.125, 96 steps),
   x ~ U[0, 1)⁴, the network 4 → 20 ×3 (ReLU) → 96 controls must bring the state back to x;
@@ -35,24 +37,31 @@ average of 8-13 on 2 cores). Test losses are evaluated at update times spaced by
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import copy
-import csv
-import io
 import json
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from adjointsim.errors import RunExists
+from adjointsim.errors import UserError
 from adjointsim.files import pyplot, save_figure, uninterrupted, write_json, write_text
-from adjointsim.run import finished_result, run_errors
+from adjointsim.nets.mlp import MLP
+from adjointsim.run import (
+    SEEDS,
+    Config,
+    Interval,
+    discard,
+    finished_result,
+    plot_history,
+    write_history,
+)
 from adjointsim.solvers.oscillators import Oscillators
 from adjointsim.solvers.poisson import Poisson2D
 from adjointsim.solvers.schrodinger import SchrodingerCN
@@ -63,6 +72,8 @@ from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
 OPTIMIZERS = ("adam", "gn", "hig")
+#: data set sizes: "tiny" shrinks them (tests, the study's smoke size); "quick" is "full"
+SIZES = ("tiny", "quick", "full")
 DTYPE = torch.float64
 #: default time budgets (s): the paper's hour is out of reach on a shared 2-core machine
 BUDGETS = {"oscillators": 600.0, "quantum": 600.0, "poisson": 600.0, "chain": 100.0}
@@ -70,7 +81,7 @@ Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # network input, physic
 
 
 @dataclass
-class Problem:
+class HigProblem:
     name: str
     model: Callable[[], torch.nn.Module]
     physics: SolverPhysics | TorchPhysics
@@ -80,15 +91,6 @@ class Problem:
     test: Batch
     #: per optimizer: batch, lr and (HIG/GN) tau
     settings: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-def mlp(sizes: list[int], act: type[torch.nn.Module]) -> torch.nn.Module:
-    layers: list[torch.nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-        layers.append(torch.nn.Linear(a, b))
-        if i < len(sizes) - 2:
-            layers.append(act())
-    return torch.nn.Sequential(*layers).to(DTYPE)
 
 
 def _squared_error(y: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -103,15 +105,15 @@ def _from_dataset(x: torch.Tensor, context: torch.Tensor, target: torch.Tensor):
     return sample
 
 
-def _oscillator_problem(stepper: Oscillators, steps: int, act, n_train: int, n_test: int,
-                        seed: int, settings: dict) -> tuple:
+def _oscillator_problem(stepper: Oscillators, steps: int, activation: str, n_train: int,
+                        n_test: int, seed: int, settings: dict) -> HigProblem:
     rng = np.random.default_rng(seed)
     train = torch.from_numpy(rng.random((n_train, 4)))
     test = torch.from_numpy(rng.random((n_test, 4)))
     physics = SolverPhysics(stepper, steps, lambda c: c.reshape(-1, 2, 2))
-    return Problem(
+    return HigProblem(
         name="",
-        model=lambda: mlp([4, 20, 20, 20, steps], act),
+        model=lambda: MLP(4, steps, width=20, depth=3, activation=activation).to(DTYPE),
         physics=physics,
         loss=_squared_error,
         sample=_from_dataset(train, train, train),
@@ -120,7 +122,7 @@ def _oscillator_problem(stepper: Oscillators, steps: int, act, n_train: int, n_t
     )
 
 
-def _quantum(seed: int, n_data: int) -> Problem:
+def _quantum(seed: int, n_data: int) -> HigProblem:
     s = SchrodingerCN(n=14, length=2.0, dt=0.05, mass=0.5)
     steps = 384
 
@@ -149,9 +151,9 @@ def _quantum(seed: int, n_data: int) -> Problem:
     train, test = targets(n_data), targets(n_data)
     empty = torch.zeros(n_data, 0, dtype=DTYPE)
     physics = SolverPhysics(s, steps, lambda c: ground.expand(c.shape[0], 2, s.n), scale=root_h)
-    return Problem(
+    return HigProblem(
         name="quantum",
-        model=lambda: mlp([2 * s.n, 20, 20, 20, steps], torch.nn.Tanh),
+        model=lambda: MLP(2 * s.n, steps, width=20, depth=3, activation="tanh").to(DTYPE),
         physics=physics,
         loss=infidelity,
         sample=_from_dataset(train, empty, train),
@@ -164,7 +166,7 @@ def _quantum(seed: int, n_data: int) -> Problem:
     )
 
 
-def laplacian(x: torch.Tensor, inv_h2: float, n: int) -> torch.Tensor:
+def five_point_laplacian(x: torch.Tensor, inv_h2: float, n: int) -> torch.Tensor:
     """The 5-point Δ_h with zero Dirichlet boundaries on flattened n × n fields (b, n²)."""
     u = torch.nn.functional.pad(x.reshape(-1, 1, n, n), (1, 1, 1, 1))
     c = u[..., 1:-1, 1:-1]
@@ -185,12 +187,12 @@ def phiflow_noise(rng: np.random.Generator, count: int, n: int) -> np.ndarray:
     return x.reshape(count, n * n)
 
 
-def _poisson(seed: int, n_test: int) -> Problem:
+def _poisson(seed: int, n_test: int) -> HigProblem:
     solver = Poisson2D(n=8, bc="dirichlet", length=9.0)  # h = 1: the reference's unit cells
     n, inv_h2 = solver.n, solver.inv_h2
 
     def fields(rng: np.random.Generator, count: int) -> torch.Tensor:
-        return laplacian(torch.from_numpy(phiflow_noise(rng, count, n)), inv_h2, n)
+        return five_point_laplacian(torch.from_numpy(phiflow_noise(rng, count, n)), inv_h2, n)
 
     test_y = fields(np.random.default_rng(seed), n_test)
     pool: list[torch.Tensor] = []
@@ -203,11 +205,11 @@ def _poisson(seed: int, n_test: int) -> Problem:
         y, pool[0] = pool[0][:batch], pool[0][batch:]
         return y, torch.zeros(batch, 0, dtype=DTYPE), y
 
-    physics = TorchPhysics(lambda f, _c: laplacian(f, inv_h2, n))
+    physics = TorchPhysics(lambda f, _c: five_point_laplacian(f, inv_h2, n))
     batch = 4
-    return Problem(
+    return HigProblem(
         name="poisson",
-        model=lambda: mlp([n * n, 64, 128, 64, n * n], torch.nn.Tanh),
+        model=lambda: MLP(n * n, n * n, widths=(64, 128, 64), activation="tanh").to(DTYPE),
         physics=physics,
         loss=_squared_error,
         sample=sample,
@@ -220,23 +222,23 @@ def _poisson(seed: int, n_test: int) -> Problem:
     )
 
 
-def make_problem(name: str, seed: int, size: str = "full") -> Problem:
+def make_problem(name: str, seed: int, size: str = "full") -> HigProblem:
     """Problem ``name`` with data drawn from ``seed``; ``size="tiny"`` shrinks the data sets
     (tests and the study's smoke size), nothing else."""
     if name not in PROBLEMS:
         raise ValueError(f"unknown HIG problem {name!r}; choose one of {', '.join(PROBLEMS)}")
-    if size not in ("tiny", "quick", "full"):
-        raise ValueError(f"size must be tiny, quick or full, not {size!r}")
+    if size not in SIZES:
+        raise ValueError(f"size must be one of {', '.join(SIZES)}, not {size!r}")
     tiny = size == "tiny"
     if name == "oscillators":
         p = _oscillator_problem(
-            Oscillators(), 96, torch.nn.ReLU, 256 if tiny else 4096, 256 if tiny else 4096, seed,
+            Oscillators(), 96, "relu", 256 if tiny else 4096, 256 if tiny else 4096, seed,
             {"adam": {"batch": 512, "lr": 3e-4}, "hig": {"batch": 128, "lr": 1.0, "tau": 1e-6},
              "gn": {"batch": 128, "lr": 1.0, "tau": 1e-6}},
         )
     elif name == "chain":
         p = _oscillator_problem(
-            Oscillators.linear_chain(), 24, torch.nn.Tanh, 256 if tiny else 4096,
+            Oscillators.linear_chain(), 24, "tanh", 256 if tiny else 4096,
             256 if tiny else 4096, seed,
             {"adam": {"batch": 256, "lr": 1e-3}, "hig": {"batch": 32, "lr": 1.0, "tau": 1e-10},
              "gn": {"batch": 32, "lr": 1.0, "tau": 1e-10}},
@@ -249,7 +251,7 @@ def make_problem(name: str, seed: int, size: str = "full") -> Problem:
     return p
 
 
-def test_loss(problem: Problem, model: torch.nn.Module) -> float:
+def test_loss(problem: HigProblem, model: torch.nn.Module) -> float:
     """Mean per-sample loss on the test set; inf when the physics blows up."""
     x, c, t = problem.test
     with torch.no_grad():
@@ -261,59 +263,59 @@ def test_loss(problem: Problem, model: torch.nn.Module) -> float:
 
 
 # --------------------------------------------------------------------------- training runs
-@dataclass(frozen=True)
-class RunConfig:
+ACCEPTED: dict[str, tuple | Interval | str] = {
+    "problem": PROBLEMS,
+    "optimizer": OPTIMIZERS,
+    "seed": SEEDS,
+    # seconds of update time; unset, the problem's entry of BUDGETS
+    "budget": Interval(0, lo_open=True),
+    "size": SIZES,
+    "max_updates": Interval(1),
+}
+
+
+@dataclass
+class HigConfig(Config):
+    """One run: ``problem`` trained by ``optimizer`` until ``budget`` seconds of update time
+    (None: the problem's entry of :data:`BUDGETS`) or ``max_updates`` updates are spent."""
+
     problem: str
-    optimizer: str
+    optimizer: str = "hig"
     seed: int = 0
-    budget: float = 60.0
+    budget: float | None = None
     size: str = "full"
     max_updates: int | None = None
 
-    def validate(self) -> None:
-        if self.problem not in PROBLEMS:
-            raise ValueError(f"unknown problem {self.problem!r}; choose one of {PROBLEMS}")
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"unknown optimizer {self.optimizer!r}; choose one of {OPTIMIZERS}")
-        if not (math.isfinite(self.budget) and self.budget > 0):
-            raise ValueError(f"the time budget must be a positive number of seconds, "
-                             f"not {self.budget!r}")
-        if self.max_updates is not None and self.max_updates < 1:
-            raise ValueError(f"max_updates must be ≥ 1, not {self.max_updates}")
-        if not 0 <= self.seed < 2**63:
-            raise ValueError(f"seed must be in 0..2**63 - 1, not {self.seed}")
+    ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
+
+    def check(self, where: str) -> None:
+        if self.budget is None:
+            self.budget = BUDGETS[self.problem]
 
 
 HISTORY_FIELDS = ("update", "wall_s", "train_loss", "test_loss")
+#: what a run directory holds besides config.json, checkpoint.pt and result.json
+RUN_FILES = ("history.csv", "loss.png")
 
 
-def _write_history(path: Path, history: list[dict]) -> None:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS)
-    w.writeheader()
-    w.writerows(history)
-    write_text(path, buf.getvalue())
-
-
-def read_history(path: Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
-
-
-def train_run(
-    cfg: RunConfig, out: Path, resume: bool = False, progress: bool = True, plot: bool = True
-) -> dict:
+def train_run(cfg: HigConfig, out: Path, resume: bool = False, overwrite: bool = False,
+              progress: bool = True, plot: bool = True) -> dict:
     """Train ``cfg.problem`` with ``cfg.optimizer`` for ``cfg.budget`` seconds of update time.
 
     Writes ``out/history.csv``, ``out/loss.png`` (if ``plot``) and, when finished,
-    ``out/result.json``;
-    ``out/checkpoint.pt`` (atomic, every 30 s of real time) lets an interrupted run resume.
-    A finished run is never overwritten: with ``resume`` its result is returned as it is.
+    ``out/result.json``; ``out/checkpoint.pt`` (atomic, every 30 s of real time and on Ctrl-C)
+    lets an interrupted run resume. A run already in ``out`` is continued with ``resume`` (a
+    finished one's result is returned as it is), discarded with ``overwrite``, and otherwise
+    refused.
     """
+    if resume and overwrite:
+        raise UserError("--resume continues a run and --overwrite discards it: pass one")
     cfg.validate()
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    config = {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
+    config = cfg.as_dict()
+    if overwrite and (out / "config.json").exists():  # a run's files, never somebody else's
+        discard(out, RUN_FILES)
     finished = finished_result(out, resume, config, ("wall_s", "updates", "test_loss"))
     if finished is not None:
         return finished
@@ -347,7 +349,7 @@ def train_run(
         save_checkpoint({"config": config, "model": model.state_dict(),
                          "optimizer": opt.state_dict() if cfg.optimizer == "adam" else None,
                          "generator": gen.get_state(), "state": state}, ckpt_path)
-        _write_history(out / "history.csv", state["history"])
+        write_history(out / "history.csv", state["history"], HISTORY_FIELDS)
 
     bar = None
     if progress:
@@ -381,13 +383,13 @@ def train_run(
         "diverged": state["diverged"],
     }
     if plot:  # before result.json: a run stopped while plotting resumes to the plot
-        plot_history({cfg.optimizer: state["history"]}, out / "loss.png",
-                     f"{cfg.problem}, seed {cfg.seed}")
+        plot_test_losses(out / "loss.png", {cfg.optimizer: state["history"]},
+                         f"{cfg.problem}, seed {cfg.seed}")
     write_json(result_path, result)
     return result
 
 
-def _make_optimizer(cfg: RunConfig, problem: Problem, model: torch.nn.Module):
+def _make_optimizer(cfg: HigConfig, problem: HigProblem, model: torch.nn.Module):
     settings = problem.settings[cfg.optimizer]
     if cfg.optimizer == "adam":
         return torch.optim.Adam(model.parameters(), lr=settings["lr"])
@@ -397,7 +399,7 @@ def _make_optimizer(cfg: RunConfig, problem: Problem, model: torch.nn.Module):
     )
 
 
-def _update(problem: Problem, model: torch.nn.Module, opt, batch: Batch) -> float:
+def _update(problem: HigProblem, model: torch.nn.Module, opt, batch: Batch) -> float:
     """One update; returns the batch's mean loss before it."""
     if isinstance(opt, HalfInverseGradients):
         return opt.step(*batch)
@@ -409,7 +411,7 @@ def _update(problem: Problem, model: torch.nn.Module, opt, batch: Batch) -> floa
     return float(loss.detach())
 
 
-def _warm_up(cfg: RunConfig, problem: Problem, model: torch.nn.Module) -> None:
+def _warm_up(cfg: HigConfig, problem: HigProblem, model: torch.nn.Module) -> None:
     """One untimed update of a copy of the model on the first test samples: loading numba's
     cached kernels and torch.func's first tracing (seconds, once per process) stay out of the
     timed updates, for every optimizer alike."""
@@ -458,54 +460,16 @@ def loss_at(history: list[dict], mark: float) -> float:
     return value
 
 
-def plot_history(curves: dict[str, list[dict]], path: Path, title: str, ax=None) -> None:
-    """Test loss against wall-clock (log-log), one curve per label; saves when ``ax`` is None."""
-    plt = pyplot()
-
+def plot_test_losses(path: Path, curves: dict[str, list[dict]], title: str,
+                     ax: Any = None) -> None:
+    """Test loss against the wall-clock of the updates (log-log), one curve per label; saved to
+    ``path`` unless drawn into ``ax``."""
     fig = None
     if ax is None:
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-    for label, hist in curves.items():
-        rows = [r for r in hist if r["wall_s"] > 0 and math.isfinite(r["test_loss"])]
-        ax.plot([r["wall_s"] for r in rows], [r["test_loss"] for r in rows], label=label)
-    ax.set(xscale="log", yscale="log", xlabel="wall-clock of the updates (s)",
-           ylabel="test loss", title=title)
-    ax.legend(fontsize=7)
+        fig, ax = pyplot().subplots(figsize=(5, 3.5))
+    timed = {label: [r for r in rows if r["wall_s"] > 0] for label, rows in curves.items()}
+    plot_history(path, timed, "wall_s", "test_loss", "wall-clock of the updates (s)",
+                 "test loss", title, ax=ax)
+    ax.set_xscale("log")
     if fig is not None:
         save_figure(fig, path, dpi=120)
-
-
-# --------------------------------------------------------------------------- CLI
-def add_arguments(h: argparse.ArgumentParser) -> None:
-    h.add_argument("problem", choices=PROBLEMS)
-    h.add_argument("--optimizer", choices=OPTIMIZERS, default="hig")
-    h.add_argument("--time-budget", type=float, default=None,
-                   help="seconds of update time (default: " + ", ".join(
-                       f"{k} {v:g}" for k, v in BUDGETS.items()) + ")")
-    h.add_argument("--seed", type=int, default=0)
-    h.add_argument("--out", type=Path, default=None,
-                   help="default runs/hig-PROBLEM-OPTIMIZER-seedS")
-    h.add_argument("--resume", action="store_true", help="continue OUT's unfinished run")
-    h.add_argument("--max-updates", type=int, default=None, help="stop after this many updates")
-    h.set_defaults(func=main)
-
-
-def main(args: argparse.Namespace) -> int:
-    import sys
-
-    torch.set_num_threads(1)
-    budget = args.time_budget if args.time_budget is not None else BUDGETS[args.problem]
-    out = args.out or Path("runs") / f"hig-{args.problem}-{args.optimizer}-seed{args.seed}"
-    cfg = RunConfig(args.problem, args.optimizer, args.seed, budget,
-                    max_updates=args.max_updates)
-    try:
-        with run_errors(out):
-            result = train_run(cfg, out, resume=args.resume)
-    except (RunExists, ValueError, MemoryError) as e:
-        print(f"adjointsim hig: {e}", file=sys.stderr)
-        return 2
-    loss = result["test_loss"]
-    print(f"{args.problem}/{args.optimizer} seed {args.seed}: {result['updates']} updates in "
-          f"{result['wall_s']:.1f} s, test loss "
-          f"{'diverged' if loss is None else f'{loss:.4g}'}; run in {out}")
-    return 0

@@ -1,13 +1,18 @@
 """The studies run by ``adjointsim study NAME``. Each module here registers its studies with
-:func:`adjointsim.runner.register_study` when imported; :func:`load_all` imports every one (and
-the solver-only ``stability`` sweep of :mod:`adjointsim.stability`), so adding a study means
-adding a module here, nothing else."""
+:func:`adjointsim.runner.register_study` when imported; :func:`load_all` imports every one, and
+the solver-only studies of the core (the ``stability`` sweep of :mod:`adjointsim.stability`,
+the ``fit-params`` table of :mod:`adjointsim.fit_study`), so adding a study means adding a
+module here, nothing else."""
+
+#: the core's studies: they need no torch, and register themselves like the modules here
+CORE_STUDIES = ("adjointsim.stability", "adjointsim.fit_study")
 
 import importlib
 import pkgutil
 
 
 def load_all() -> None:
-    importlib.import_module("adjointsim.stability")
+    for module in CORE_STUDIES:
+        importlib.import_module(module)
     for module in pkgutil.iter_modules(__path__):
         importlib.import_module(f"{__name__}.{module.name}")

@@ -1,8 +1,8 @@
 """The ``hig`` study: Adam, Gauss–Newton and half-inverse gradients on every HIG problem, over
 seeds, compared at the same wall-clock of updates (``adjointsim study hig [--quick]``).
 
-Each cell is one ``adjointsim hig`` run (:func:`adjointsim.train.hig_problems.train_run`) in its own
-directory; its row holds the final test loss, the summed update time ``wall_s`` and the test
+Each cell is one ``adjointsim hig`` run (:func:`adjointsim.train.hig_problems.train_run`) in
+its own directory; its row holds the final test loss, the summed update time ``wall_s`` and the test
 loss at fixed wall-clock ``marks``. The report tables the median over seeds (and the range) at
 each mark, says per problem whether HIG ends below Adam and GN, and draws the loss-versus-time
 curves, one panel per problem.
@@ -17,9 +17,10 @@ from statistics import median
 import torch
 
 from adjointsim.files import pyplot, save_figure, write_text
+from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
 
-from ..hig_problems import OPTIMIZERS, PROBLEMS, RunConfig, loss_at, read_history
+from ..hig_problems import OPTIMIZERS, PROBLEMS, HigConfig, loss_at, plot_test_losses
 from ..hig_problems import train_run as _train_run
 
 #: per size: problems, seeds, time budget per problem (s), wall-clock marks of the table (s)
@@ -54,8 +55,8 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
     torch.set_num_threads(1)
-    cfg = RunConfig(cell["problem"], cell["optimizer"], cell["seed"], cell["budget"],
-                    size=cell["data"])
+    cfg = HigConfig(problem=cell["problem"], optimizer=cell["optimizer"], seed=cell["seed"],
+                    budget=cell["budget"], size=cell["data"])
     result = _train_run(cfg, Path(run_dir), resume=True, progress=False, plot=False)
     history = read_history(Path(run_dir) / "history.csv")
     return {
@@ -145,24 +146,28 @@ def plot(rows: list[dict], out: Path, path: Path) -> None:
     fig, axes = plt.subplots(1, len(problems), figsize=(4.2 * len(problems), 3.4), squeeze=False)
     colors = {"adam": "tab:blue", "gn": "tab:orange", "hig": "tab:green"}
     for ax, problem in zip(axes[0], problems):
-        start = 0.0  # a diverging run must not squash the others: clip at 10x the start
-        for r in rows:
-            if r["problem"] != problem:
-                continue
+        curves: dict[str, list[dict]] = {}
+        drawn = []
+        for r in sorted((r for r in rows if r["problem"] == problem),
+                        key=lambda r: (OPTIMIZERS.index(r["optimizer"]), r["seed"])):
             path_csv = out / r["id"] / "history.csv"
             if not path_csv.exists():
                 continue
             hist = [h for h in read_history(path_csv)
                     if h["wall_s"] > 0 and math.isfinite(h["test_loss"])]
-            start = max([start] + [h["test_loss"] for h in hist[:1]])
-            ax.plot([h["wall_s"] for h in hist], [h["test_loss"] for h in hist],
-                    color=colors[r["optimizer"]], alpha=0.8, lw=1,
-                    label=r["optimizer"].upper() if r["seed"] == 0 else None)
-        ax.set(xscale="log", yscale="log", xlabel="wall-clock of the updates (s)",
-               ylabel="test loss", title=problem)
+            if hist:
+                # matplotlib leaves labels that start with "_" out of the legend: one entry
+                # per optimizer
+                label = r["optimizer"].upper() if r["seed"] == 0 else f"_{r['id']}"
+                curves[label] = hist
+                drawn.append(r)
+        if drawn:  # one colour per optimizer, in the order the curves are drawn
+            ax.set_prop_cycle(color=[colors[r["optimizer"]] for r in drawn])
+        plot_test_losses(path, curves, problem, ax=ax)
+        # a diverging run must not squash the others: clip at 10x the highest start
+        start = max([0.0] + [hist[0]["test_loss"] for hist in curves.values()])
         if start > 0:
             ax.set_ylim(top=10 * start)
-        ax.legend(fontsize=7)
     save_figure(fig, path, dpi=120)
 
 

@@ -1,5 +1,5 @@
-"""The studies of List et al.: setups × unroll modes × seeds, trained, evaluated and
-tabulated (mean ± std per cell), with a plot; ``ks`` (Kuramoto–Sivashinsky) and
+"""The neural time-stepper studies of List et al.: setups × unroll modes × seeds, trained,
+evaluated and tabulated (mean ± std per cell), with a plot; ``ks`` (Kuramoto–Sivashinsky) and
 ``kolmogorov`` (2D Kolmogorov flow), run by :mod:`adjointsim.runner`.
 
 Everything a study makes lives under its output directory: the dataset (made once, before the
@@ -39,7 +39,7 @@ STUDIES = {
         "full": {"data": "full", "seeds": 3, "train": {
             "width": 26, "blocks": 8, "unroll": 3, "epochs": 2, "stride": 8, "lr": 1e-3,
             "lr_decay_every": 128, "batch": 16}},
-        # Issue 14's protocol: correction models, 3x the full study's updates, and a learning
+        # The paper protocol: correction models, 3x the full study's updates, and a learning
         # rate falling 100x to 1e-5 by the end. At lr 1e-3 x 0.9 every 512 updates, NOG's
         # training ran away on seeds 1 and 2 (README, "Unrolling across seeds"); the paper
         # trains 80 epochs at 1e-4, about 100x the updates affordable here.
