@@ -297,11 +297,13 @@ def finished_result(out: Path, resume: bool, config: dict | None = None,
                 raise RunExists(f"{out} holds a finished run of another configuration "
                                 f"(differs in {', '.join(differ)}); choose another --out")
             return result
-        raise RunExists(f"{out} holds a finished run; choose another --out or delete it")
+        raise RunExists(f"{out} holds a finished run; choose another --out, or start it again "
+                        "with --overwrite")
     if config is not None:
         refuse_foreign(out, config)
     if (out / "checkpoint.pt").exists() and not resume:
-        raise RunExists(f"{out} holds an unfinished run; pass --resume to continue it")
+        raise RunExists(f"{out} holds an unfinished run; continue it with --resume, or start it "
+                        "again with --overwrite")
     return None
 
 

@@ -23,6 +23,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+
 from adjointsim.train.pinn import PinnConfig, make_problem, make_weighting  # noqa: E402
 
 

@@ -1,8 +1,61 @@
-"""``adjointsim pinn``: physics-informed training with loss balancing."""
+"""``adjointsim pinn``: physics-informed training with loss balancing, resumable."""
 
 from __future__ import annotations
 
-from adjointsim.train.pinn import add_arguments as arguments
-from adjointsim.train.pinn import run_command as run
+import argparse
+from pathlib import Path
 
-__all__ = ["arguments", "run"]
+from .options import config_flags, overrides, run_options, threads_option
+
+_HELPS = {
+    "k": "the Poisson wavenumber: ω = kπ",
+    "weighting": "the loss weights: uniform, inverse-Dirichlet (id), max/avg (maxavg), or the "
+                 "Poisson problem's analytic ones (fixed, analytic)",
+    "reference": "the inverse-Dirichlet reference term: the problem's (res) or the term of "
+                 "largest gradient spread (max)",
+    "epochs": "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000)",
+    "seed": "draws the points and the initial network (Sobolev: the target too)",
+    "lr": "Adam's learning rate (Poisson and Sobolev: × 0.1 at epochs 10k, 20k and 30k)",
+    "every": "epochs between weight refreshes",
+    "alpha": "the weights' moving-average factor",
+    "width": "hidden units per layer; 0: the problem's (poisson 50, sobolev 64, ks-inverse 50)",
+    "depth": "hidden layers",
+    "collocation": "collocation points (Poisson: drawn from the 100 x 100 grid)",
+    "edge_points": "points per boundary edge (ks-inverse: times of the periodicity term)",
+    "route": "Δu by the forward Taylor route or nested autograd (Poisson only)",
+    "log_every": "epochs between rows of history.csv",
+}
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    from adjointsim.train.pinn import PROBLEMS, PinnConfig
+
+    p.add_argument("problem", nargs="?", choices=PROBLEMS, default=None,
+                   help="the problem (default poisson, or the --config file's)")
+    run_options(p, "runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
+    threads_option(p)
+    config_flags(p, PinnConfig, PinnConfig.ACCEPTED, skip=("problem",), helps=_HELPS)
+
+
+def run(args: argparse.Namespace) -> int:
+    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.train import pinn
+
+    cfg = pinn.PinnConfig.load(args.config, **overrides(args, pinn.PinnConfig))
+    name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
+    out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
+    if args.resume:
+        require_checkpoint(out)
+    with run_errors(out):
+        result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,
+                                overwrite=args.overwrite, threads=args.threads)
+    if result["diverged"]:
+        print(f"{name} {cfg.weighting}: diverged after {pinn.MAX_SKIPS} non-finite losses in a "
+              f"row; run in {out}")
+        return 1
+    print(f"{name} {cfg.weighting} seed {cfg.seed}: relative L2 "
+          f"{result['rel_l2']:.3e} after {cfg.epochs} epochs ({result['seconds']:.0f} s), "
+          f"weights {', '.join(f'{k} {v:.3g}' for k, v in result['weights'].items())}"
+          + "".join(f", {k} {v:.4g}" for k, v in result["coefficients"].items())
+          + f"; run in {out}")
+    return 0

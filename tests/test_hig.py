@@ -480,3 +480,22 @@ def test_auto_takes_the_gram_route_only_where_tau_resolves_the_dropped_direction
                               torch.ones(3, dtype=torch.float64)).any()
     with pytest.raises(ValueError, match="unknown decomposition 'qr'; choose from auto, svd"):
         HalfInverseGradients(model, physics, lambda y, t: y.sum(1), decomposition="qr")
+
+
+def test_a_checkpoint_of_another_layout_is_one_line(tmp_path, capsys):
+    """An unfinished run saved with other layer names (an older version's network) is refused
+    with what to do, not a traceback."""
+    from adjointsim.cli import main
+    from adjointsim.train.checkpoint import load_checkpoint, save_checkpoint
+
+    out = tmp_path / "r"
+    argv = ["hig", "poisson", "--max-updates", "2", "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    (out / "result.json").unlink()
+    ckpt = load_checkpoint(out / "checkpoint.pt", ("model",))
+    ckpt["model"] = {f"old.{k}": v for k, v in ckpt["model"].items()}
+    save_checkpoint(ckpt, out / "checkpoint.pt")
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--overwrite" in err

@@ -1,16 +1,18 @@
-"""The Poisson PINN (train/pinn.py): problem, training loop, checkpoints, bad input, CLI and a
-tiny end-to-end study. Tiny networks and point sets: seconds."""
+"""The PINNs (train/pinn.py, cli/pinn.py): problems, training loop, checkpoints, bad input, the
+command's run lifecycle (--resume, --overwrite, --config) and tiny end-to-end studies. Tiny
+networks and point sets: seconds."""
 
 import json
 import math
 
 import pytest
 import torch
-from adjointsim.train import pinn
-from adjointsim.train.pinn import PinnConfig, make_problem, read_history, train_run
 
 from adjointsim.cli import main as cli
 from adjointsim.errors import RunExists
+from adjointsim.run import read_history
+from adjointsim.train import pinn
+from adjointsim.train.pinn import PinnConfig, make_problem, train_run
 
 TINY = {"width": 6, "depth": 2, "collocation": 40, "edge_points": 6, "log_every": 2}
 TINY_ARGS = ["--width", "6", "--depth", "2", "--collocation", "40", "--edge-points", "6",
@@ -203,19 +205,126 @@ def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["heat"], "unknown problem 'heat'"),
-    (["poisson", "--k", "7"], "k must be in 1..6"),
-    (["poisson", "--k", "0"], "k must be in 1..6"),
-    (["poisson", "--weighting", "gradnorm"], "unknown weighting 'gradnorm'"),
-    (["poisson", "--epochs", "many"], "--epochs must be int"),
-    (["poisson", "--reference", "bc"], "reference must be 'res' or 'max'"),
-    (["poisson", "--seed", "-1"], "seed must be in 0..2**63 - 1"),
-    (["poisson", "--collocation", "1"], "collocation must be ≥ 2"),
+    (["poisson", "--k", "7"], "config key 'k': 7 is not an integer in [1, 6]"),
+    (["poisson", "--k", "0"], "config key 'k': 0 is not an integer in [1, 6]"),
+    (["poisson", "--seed", "-1"], "config key 'seed': -1 is not an integer in [0, "),
+    (["poisson", "--collocation", "1"], "config key 'collocation': 1 is not an integer in [2, "),
+    (["poisson", "--alpha", "0"], "config key 'alpha': 0.0 is not a finite number in (0, 1]"),
+    (["sobolev", "--weighting", "fixed"], "the sobolev problem has no analytic weights"),
+    (["ks-inverse", "--route", "autograd"], "takes route 'taylor' only"),
 ])
 def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
     assert cli(["pinn", *args, "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["heat"], "invalid choice: 'heat'"),
+    (["poisson", "--weighting", "gradnorm"], "invalid choice: 'gradnorm'"),
+    (["poisson", "--epochs", "many"], "argument --epochs: 'many' is not an integer"),
+    (["poisson", "--edge-points", "1e9"], "argument --edge-points: '1e9' is not an integer"),
+    (["poisson", "--reference", "bc"], "invalid choice: 'bc'"),
+])
+def test_cli_malformed_flags_are_usage_errors(args, message, capsys, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        cli(["pinn", *args, "--out", str(tmp_path / "x")])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_help_says_what_0_means_and_lists_the_choices(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "300")  # no wrapping inside the phrases looked for
+    with pytest.raises(SystemExit) as e:
+        cli(["pinn", "--help"])
+    assert e.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000)" in text
+    assert "0: the problem's (poisson 50, sobolev 64, ks-inverse 50)" in text
+    for choices in ("{poisson,sobolev,ks-inverse}", "{res,max}", "{taylor,autograd}",
+                    "{uniform,inverse-dirichlet,max-avg,fixed,id,maxavg,analytic}"):
+        assert choices in text
+    for flag in ("--out", "--resume", "--overwrite", "--config", "--seed", "--threads",
+                 "--no-progress"):
+        assert flag in text
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--width", "200000"], "config key 'width': 200000 is not an integer in [0, 4096]"),
+    (["--edge-points", "1000000000"],
+     "config key 'edge_points': 1000000000 is not an integer in [1, 100000]"),
+    (["--depth", "100000"], "config key 'depth': 100000 is not an integer in [1, 100]"),
+    (["--width", "4096", "--depth", "100"], "GiB of memory to train, this machine has 16.0 GiB"),
+])
+def test_absurd_sizes_are_refused_before_anything_is_allocated(args, message, capsys, tmp_path,
+                                                               monkeypatch):
+    def allocate(*args, **kwargs):
+        raise AssertionError("allocated before the sizes were checked")
+
+    monkeypatch.setattr(pinn, "physical_memory", lambda: 16 * 2**30)
+    monkeypatch.setattr(pinn, "MLP", allocate)
+    monkeypatch.setattr(pinn.Poisson, "__init__", allocate)
+    assert cli(["pinn", "poisson", *args, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "x").exists()
+
+
+def test_resume_without_a_checkpoint_is_one_line(tmp_path, capsys):
+    for out in (tmp_path / "none", tmp_path):
+        assert cli(["pinn", "poisson", *TINY_ARGS, "--resume", "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "holds no checkpoint to continue from" in err[0]
+    assert not (tmp_path / "none").exists()
+
+
+def test_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
+    args = ["pinn", "poisson", "--epochs", "4", *TINY_ARGS, "--out", str(tmp_path / "r")]
+    assert cli(args) == 0
+    first = json.loads((tmp_path / "r" / "result.json").read_text())
+    assert cli([*args, "--epochs", "6"]) == 2
+    assert "finished run" in capsys.readouterr().err
+    assert cli([*args, "--epochs", "6", "--overwrite"]) == 0
+    again = json.loads((tmp_path / "r" / "result.json").read_text())
+    assert again["epochs"] == 6 and again["rel_l2"] != first["rel_l2"]
+    assert read_history(tmp_path / "r" / "history.csv")[-1]["epoch"] == 6
+    # the same as a run in an empty directory
+    assert cli([*args[:-1], str(tmp_path / "fresh"), "--epochs", "6"]) == 0
+    fresh = json.loads((tmp_path / "fresh" / "result.json").read_text())
+    assert again["rel_l2"] == fresh["rel_l2"] and again["weights"] == fresh["weights"]
+    # an unfinished run is discarded too; somebody else's files never are
+    (tmp_path / "r" / "result.json").unlink()
+    assert cli([*args, "--overwrite"]) == 0
+    assert json.loads((tmp_path / "r" / "result.json").read_text())["epochs"] == 4
+    (tmp_path / "theirs").mkdir()
+    (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
+    assert cli([*args[:-1], str(tmp_path / "theirs"), "--overwrite"]) == 2
+    assert "another run or other files" in capsys.readouterr().err
+    assert (tmp_path / "theirs" / "config.json").read_text() == '{"precious": true}'
+
+
+def test_config_file_sets_every_key_and_names_a_wrong_type(tmp_path, capsys):
+    cfg = tmp_path / "pinn.toml"
+    cfg.write_text('problem = "poisson"\nk = 2\nweighting = "max-avg"\nepochs = 4\n'
+                   "width = 6\ndepth = 2\ncollocation = 40\nedge_points = 6\nlr = 1\n")
+    out = tmp_path / "r"
+    assert cli(["pinn", "--config", str(cfg), "--lr", "0.002", "--no-progress",
+                "--out", str(out)]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert (config["k"], config["weighting"], config["epochs"], config["lr"]) == (
+        2, "max-avg", 4, 0.002)
+    for toml, message in (
+            ('k = "3"', "config key 'k' in {cfg}: '3' (str) is not an integer; accepted: an "
+             "integer in [1, 6]"),
+            ("edge_points = 1e9", "config key 'edge_points' in {cfg}: 1000000000.0 (float) is "
+             "not an integer; accepted: an integer in [1, 100000]"),
+            ("alpha = true", "config key 'alpha' in {cfg}: True (bool) is not a finite number"),
+            ("colocation = 10", "unknown config option 'colocation' (did you mean "
+             "'collocation'?)")):
+        cfg.write_text(toml + "\n")
+        assert cli(["pinn", "poisson", "--config", str(cfg), "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message.format(cfg=cfg) in err[0]
 
 
 def test_cli_runs_and_refuses_a_finished_run(tmp_path, capsys):
@@ -230,7 +339,6 @@ def test_cli_runs_and_refuses_a_finished_run(tmp_path, capsys):
 
 def test_tiny_study_end_to_end(tmp_path):
     import adjointsim.train.studies.pinn as study
-
     from adjointsim.runner import run
 
     rows = run("pinn-poisson", tmp_path, "tiny", None, cluster="none", progress=False)
@@ -279,7 +387,6 @@ def test_sobolev_run_balances_five_terms(tmp_path):
 @pytest.mark.slow
 def test_quick_study_ranks_inverse_dirichlet_below_uniform(tmp_path):
     import adjointsim.train.studies.pinn  # noqa: F401
-
     from adjointsim.runner import run
 
     rows = run("pinn-poisson", tmp_path, "quick", None, cluster="none", progress=False)
@@ -353,7 +460,7 @@ def test_ks_inverse_run_adds_terms_in_phases_and_learns_coefficients_last(tmp_pa
     assert set(result["coefficients"]) == {"alpha", "beta"}
     refreshes = read_history(tmp_path / "run" / "weights.csv")
     assert [r["step"] for r in refreshes] == [0, 0, 5]
-    assert refreshes[1]["periodic"] == 1.0 and math.isnan(refreshes[1]["spread/periodic"])
+    assert refreshes[1]["periodic"] == 1.0 and refreshes[1]["spread/periodic"] == ""
     # at step 5 (phase 2) the periodic term is balanced against data, the reference
     assert refreshes[2]["data"] == refreshes[2]["res"] == 1.0 != refreshes[2]["periodic"]
     hist = read_history(tmp_path / "run" / "history.csv")
@@ -370,7 +477,6 @@ def test_ks_inverse_bad_options_are_named():
 
 def test_tiny_ks_inverse_study_tables_the_data_loss_by_phase(tmp_path):
     import adjointsim.train.studies.pinn  # noqa: F401 - registers the study
-
     from adjointsim.runner import run
 
     rows = run("pinn-ks-inverse", tmp_path, "tiny", None, cluster="none", progress=False)

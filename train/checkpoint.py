@@ -103,3 +103,15 @@ def load_run_checkpoint(path: Path, config: dict, keys: Iterable[str]) -> dict:
         raise RunExists(f"{path.parent} holds a run of another configuration (differs in "
                         f"{', '.join(differ)}); choose another --out")
     return ckpt
+
+
+def restore(module: Any, state: dict, path: Path) -> None:
+    """Load ``state`` (a model's or an optimiser's, from the checkpoint at ``path``) into
+    ``module``; one written for another layout (an older version's layer names) is
+    ``RunExists`` saying what to do, not a traceback."""
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, KeyError, ValueError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise RunExists(f"{path} does not fit this version's {type(module).__name__} ({first}); "
+                        "start the run again with --overwrite, or into another --out") from None

@@ -67,7 +67,7 @@ from adjointsim.solvers.poisson import Poisson2D
 from adjointsim.solvers.schrodinger import SchrodingerCN
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
-from .checkpoint import load_run_checkpoint, save_checkpoint
+from .checkpoint import load_run_checkpoint, restore, save_checkpoint
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
@@ -331,9 +331,9 @@ def train_run(cfg: HigConfig, out: Path, resume: bool = False, overwrite: bool =
     if ckpt_path.exists():
         ckpt = load_run_checkpoint(ckpt_path, config,
                                    ("config", "model", "optimizer", "generator", "state"))
-        model.load_state_dict(ckpt["model"])
+        restore(model, ckpt["model"], ckpt_path)
         if cfg.optimizer == "adam":
-            opt.load_state_dict(ckpt["optimizer"])
+            restore(opt, ckpt["optimizer"], ckpt_path)
         gen.set_state(ckpt["generator"])
         state = ckpt["state"]
     write_text(out / "config.json", json.dumps(config, indent=2))

@@ -1,7 +1,7 @@
 """Physics-informed training with loss balancing (Maddu et al., MLST 2022): the multi-scale
 Poisson problem, Sobolev training (:class:`Sobolev`), a sequential inverse problem on this
-project's KS solver (:class:`KSInverse`), the training loop, history, plots and the
-``adjointsim pinn`` command.
+project's KS solver (:class:`KSInverse`), the training loop, history and plots. The
+``adjointsim pinn`` command runs it.
 
 Poisson, as in the note: Δu = −2ω² cos(ωx) sin(ωy) on [0, 1]², ω = kπ, k = 1..6, exact
 solution u = cos(ωx) sin(ωy). L_res = mean of the squared residual over 2500 collocation points
@@ -12,41 +12,52 @@ collocation points' mean and std. Adam, lr 1e-3, full batch, 30,001 epochs with 
 10k, 20k and 30k (a shorter run is the start of such a run). Metric: relative L2
 error on the 100 × 100 grid. The seed draws the points and the initial network.
 
-Loss L = λ_res L_res + λ_bc L_bc with λ from :class:`adjointsim.train.weighting.Weighting` (the residual
-is the reference term, as in the authors' code, unless ``reference = "max"``); ``fixed`` uses
-the analytic ε-optimal λ_res = 1/(1 + ω⁴), λ_bc = 1 − λ_res. Δu comes from the forward Taylor
-route (:mod:`adjointsim.nets.taylor`) or, for comparison, nested autograd (``route = "autograd"``).
+Loss L = λ_res L_res + λ_bc L_bc with λ from :class:`adjointsim.train.weighting.Weighting` (the
+residual is the reference term, as in the authors' code, unless ``reference = "max"``);
+``fixed`` uses the analytic ε-optimal λ_res = 1/(1 + ω⁴), λ_bc = 1 − λ_res. Δu comes from the
+forward Taylor route (:mod:`adjointsim.nets.taylor`) or, for comparison, nested autograd
+(``route = "autograd"``).
 
-A run directory holds ``config.json``, ``checkpoint.pt`` (atomic, every minute and at the end),
-``history.csv`` (every ``log_every`` epochs: each term, each weight, the weighted total, the
-relative L2 error, skipped updates, seconds), ``weights.csv`` (every weight refresh: each λ and
-each term's gradient spread), ``result.json`` once finished, and the plots
-``field.png`` (exact, prediction, error) and ``history.png`` (terms, weights, error).
+A :class:`PinnConfig` is checked key by key (:data:`ACCEPTED`) and against the machine's
+memory before anything is allocated. A run directory holds ``config.json``, ``checkpoint.pt``
+(atomic, every minute, on Ctrl-C and at the end), ``history.csv`` (every ``log_every`` epochs:
+each term, each weight, the weighted total, the relative L2 error, skipped updates, seconds),
+``weights.csv`` (every weight refresh: each λ and each term's gradient spread), ``result.json``
+once finished, and the plots ``field.png`` (exact, prediction, error) and ``history.png``
+(terms, weights, error).
 """
 
 from __future__ import annotations
 
-import argparse
-import csv
-import io
+import json
 import math
+import os
 import time
 import warnings
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
-from adjointsim.nets.mlp import MLP
-from adjointsim.nets.taylor import jets, laplacian
 from torch import nn
 
-from adjointsim.errors import DamagedFileError
-from adjointsim.files import pyplot, save_figure, uninterrupted, write_json, write_text
-from adjointsim.run import finished_result, run_errors
+from adjointsim.errors import DamagedFileError, UserError
+from adjointsim.files import pyplot, save_figure, uninterrupted, write_json
+from adjointsim.nets.mlp import MLP
+from adjointsim.nets.taylor import jets, laplacian
+from adjointsim.run import (
+    SEEDS,
+    Config,
+    Interval,
+    discard,
+    finished_result,
+    plot_history,
+    write_history,
+)
 
 from .checkpoint import load_run_checkpoint, save_checkpoint
-from .weighting import Weighting, canonical_rule
+from .weighting import ALIASES, RULES, Weighting, canonical_rule
 
 PROBLEMS = ("poisson", "sobolev", "ks-inverse")
 #: each problem's network: activation and the default width (``width = 0``)
@@ -67,10 +78,41 @@ REPORTED = {
 MAX_SKIPS = 10
 CHECKPOINT_KEYS = ("config", "model", "optimizer", "scheduler", "weighting", "state")
 RESULT_KEYS = ("rel_l2", "diverged", "skipped", "seconds", "weights", "coefficients", "phases")
+#: what a run directory holds besides config.json, checkpoint.pt and result.json: removed by
+#: ``overwrite``
+RUN_FILES = ("history.csv", "weights.csv", "field.png", "history.png")
+
+#: the accepted values of every PinnConfig field; the rules tying keys together (the route
+#: and the fixed weights only on Poisson, 0 as the problem's width and epochs, the memory a
+#: network needs) are in PinnConfig.check
+ACCEPTED: dict[str, tuple | Interval | str] = {
+    "problem": PROBLEMS,
+    "k": Interval(*K_RANGE),
+    "weighting": (*RULES, *ALIASES),
+    "reference": ("res", "max"),
+    "epochs": Interval(0),
+    "seed": SEEDS,
+    "lr": Interval(0, lo_open=True),
+    "alpha": Interval(0, 1, lo_open=True),
+    "every": Interval(1),
+    # wider or deeper is not a PINN of these problems but a typing mistake; within the bounds
+    # the memory a run needs is checked against the machine's (PinnConfig.check)
+    "width": Interval(0, 4096),
+    "depth": Interval(1, 100),
+    # at least 2: the inputs are standardised by the points' spread; at most the 100 × 100
+    # grid, from which Poisson draws them without replacement
+    "collocation": Interval(2, 100 * 100),
+    "edge_points": Interval(1, 100_000),
+    "route": ROUTES,
+    "log_every": Interval(1),
+}
 
 
 @dataclass
-class PinnConfig:
+class PinnConfig(Config):
+    """One run of ``adjointsim pinn``: every key is a flag and a key of a ``--config`` file;
+    :meth:`validate` checks them against :data:`ACCEPTED` and :meth:`check`."""
+
     problem: str = "poisson"
     k: int = 1
     weighting: str = "inverse-dirichlet"
@@ -83,7 +125,7 @@ class PinnConfig:
     lr: float = 1e-3
     alpha: float = 0.5
     every: int = 5
-    #: 0: the problem's (Poisson 50, Sobolev 64)
+    #: 0: the problem's (Poisson 50, Sobolev 64, ks-inverse 50)
     width: int = 0
     depth: int = 5
     collocation: int = 2500
@@ -91,50 +133,50 @@ class PinnConfig:
     route: str = "taylor"
     log_every: int = 100
 
-    def validate(self) -> None:
-        if self.problem not in PROBLEMS:
-            raise ValueError(f"unknown problem {self.problem!r}; choose from "
-                             f"{', '.join(PROBLEMS)}")
+    ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
+
+    def check(self, where: str) -> None:
+        """The weighting's canonical name, the rules tying keys together, 0 replaced by the
+        problem's width and epochs, and the memory the run needs (before anything is made)."""
         self.weighting = canonical_rule(self.weighting)
-        for f in fields(self):
-            v = getattr(self, f.name)
-            want = type(f.default)
-            if not isinstance(v, want) or isinstance(v, bool):
-                if not (want is float and isinstance(v, int) and not isinstance(v, bool)):
-                    raise ValueError(f"config key {f.name!r} must be {want.__name__}, "
-                                     f"got {v!r}")
-        if self.width == 0:
-            self.width = NETWORKS[self.problem][1]
-        if self.epochs == 0:
-            self.epochs = EPOCHS[self.problem]
         if self.problem != "poisson" and self.route != "taylor":
-            raise ValueError(f"the {self.problem} problem takes route 'taylor' only (fourth "
-                             "derivatives)")
+            raise UserError(f"config key 'route'{where}: the {self.problem} problem takes route "
+                            "'taylor' only (fourth derivatives)")
         if self.problem != "poisson" and self.weighting == "fixed":
-            raise ValueError(f"the {self.problem} problem has no analytic weights; choose "
-                             "uniform, inverse-dirichlet or max-avg")
-        if not K_RANGE[0] <= self.k <= K_RANGE[1]:
-            raise ValueError(f"k must be in {K_RANGE[0]}..{K_RANGE[1]} (ω = kπ), not {self.k}")
-        if self.reference not in ("res", "max"):
-            raise ValueError(f"reference must be 'res' or 'max', not {self.reference!r}")
-        if self.route not in ROUTES:
-            raise ValueError(f"route must be one of {', '.join(ROUTES)}, not {self.route!r}")
-        for name in ("epochs", "depth", "edge_points", "every", "log_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be ≥ 1, not {getattr(self, name)}")
-        if self.collocation < 2:  # the inputs are standardised by the points' spread
-            raise ValueError(f"collocation must be ≥ 2, not {self.collocation}")
-        if not 0 <= self.seed < 2**63:
-            raise ValueError(f"seed must be in 0..2**63 - 1, not {self.seed}")
-        if self.width < 0:
-            raise ValueError(f"width must be ≥ 1 (or 0: the problem's), not {self.width}")
-        if self.collocation > 100 * 100:
-            raise ValueError(f"collocation must be ≤ 10000 (the 100 × 100 grid), "
-                             f"not {self.collocation}")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise ValueError(f"lr must be a positive number, not {self.lr}")
-        if not 0 < self.alpha <= 1:
-            raise ValueError(f"alpha must be in (0, 1], not {self.alpha}")
+            raise UserError(f"config key 'weighting'{where}: the {self.problem} problem has no "
+                            "analytic weights; choose uniform, inverse-dirichlet or max-avg")
+        self.width = self.width or NETWORKS[self.problem][1]
+        self.epochs = self.epochs or EPOCHS[self.problem]
+        need, have = memory_needed(self), physical_memory()
+        if have is not None and need > have:
+            raise UserError(f"width {self.width}, depth {self.depth}, collocation "
+                            f"{self.collocation} and edge_points {self.edge_points}{where} need "
+                            f"about {_gib(need)} of memory to train, this machine has "
+                            f"{_gib(have)}; choose smaller ones")
+
+
+def memory_needed(cfg: PinnConfig) -> int:
+    """Bytes one training epoch of ``cfg`` holds at its peak, roughly and from above: the
+    parameters with their gradient, Adam's two moments and one gradient per loss term (the
+    weighting's), and per hidden unit the problem's :attr:`PinnProblem.floats_per_unit`."""
+    w, d = cfg.width, cfg.depth
+    params = 3 * w + (d - 1) * (w * w + w) + w + 1
+    problem = _PROBLEMS[cfg.problem]
+    per_col, per_edge = problem.floats_per_unit
+    activations = (per_col * cfg.collocation + per_edge * cfg.edge_points) * w * d
+    return int(4 * ((4 + len(problem.terms)) * params + activations))
+
+
+def physical_memory() -> int | None:
+    """The machine's memory in bytes (None where the system does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _gib(n: int) -> str:
+    return f"{n / 2**30:,.1f} GiB"
 
 
 # ----------------------------------------------------------------------------- the problem
@@ -169,7 +211,7 @@ class Standardized(nn.Module):
         return jets(self.mlp, (x - self.mean) / self.std, order, dirs[list(axes)] if axes else dirs)
 
 
-class Problem:
+class PinnProblem:
     """What the training loop asks of a problem; the defaults fit a problem whose terms are
     all active from the start, with no physical coefficient to learn. Each problem also has
     ``model()`` and ``losses(model, route, terms)``, the named loss terms; a problem whose
@@ -177,6 +219,10 @@ class Problem:
 
     terms: tuple[str, ...] = ()
     reference = ""
+    #: float32 values per hidden unit that a training epoch keeps at its peak, per collocation
+    #: point and per edge point (measured on CPU, with a quarter more as margin): the
+    #: derivative streams the reverse pass needs
+    floats_per_unit: tuple[float, float] = (0.0, 0.0)
     #: the evaluation grid: (rows, columns) and (first min, max, second min, max)
     shape = (100, 100)
     extent = (0.0, 1.0, 0.0, 1.0)
@@ -214,11 +260,12 @@ def _tanh_mlp(cfg: PinnConfig, mean: torch.Tensor, std: torch.Tensor) -> Standar
     return Standardized(mlp, mean, std)
 
 
-class Poisson(Problem):
+class Poisson(PinnProblem):
     """The multi-scale Poisson problem at wavenumber k (see the module doc)."""
 
     terms = ("res", "bc")
     reference = "res"
+    floats_per_unit = (48.0, 10.0)  # Δu at the collocation points; u on four edges
     #: the boundary's edges (axis held fixed, its value): one MSE term each, summed
     EDGES = ((0, 0.0), (0, 1.0), (1, 0.0), (1, 1.0))
 
@@ -267,18 +314,19 @@ class Poisson(Problem):
         return {"res": lam, "bc": 1.0 - lam}
 
 
-class Sobolev(Problem):
+class Sobolev(PinnProblem):
     """Sobolev training (the note's problem 2): fit f(x, y) = Σ_{j=1}^{20} A_j cos(l_j x + φ_j)
     · A'_j sin(l'_j y + φ'_j) (A, A' ~ U(−5, 5), l, l' ∈ {1..4}, φ, φ' ~ U(0, 2π), drawn from the
     seed) on (0, 2π]² together with its derivatives: five objectives, the MSEs of f,
     ∂x f + ∂y f, Δf, ∂xxx f + ∂yyy f and ∂xxxx f + ∂yyyy f at ``collocation`` uniformly random
-    points; each is the sum over the axes of one order of :func:`adjointsim.nets.taylor.jets`. Network
-    [2, 64×5, 1] with sin activation (PyTorch's default init), inputs standardised; the ID
-    reference is the highest derivative (the authors' code). Metric: relative L2 of f on the
-    100 × 100 grid."""
+    points; each is the sum over the axes of one order of
+    :func:`adjointsim.nets.taylor.jets`. Network [2, 64×5, 1] with sin activation (PyTorch's
+    default init), inputs standardised; the ID reference is the highest derivative (the
+    authors' code). Metric: relative L2 of f on the 100 × 100 grid."""
 
     terms = ("f", "d1", "d2", "d3", "d4")
     reference = "d4"
+    floats_per_unit = (110.0, 0.0)  # jets to fourth order along both axes
     extent = (0.0, 2.0 * math.pi) * 2
     title = "Sobolev training"
 
@@ -321,7 +369,7 @@ class Sobolev(Problem):
         return {t: ((o - y) ** 2).mean() for t, o, y in zip(self.terms, outs, self.targets)}
 
 
-class KSInverse(Problem):
+class KSInverse(PinnProblem):
     """A sequential inverse problem on this project's Kuramoto–Sivashinsky solver: learn u(x, t)
     and the coefficients α, β of u_t + u u_x + α u_xx + β u_xxxx = 0 from a trajectory.
 
@@ -347,13 +395,14 @@ class KSInverse(Problem):
 
     terms = ("data", "periodic", "res")
     reference = "data"
+    floats_per_unit = (110.0, 110.0)  # the residual's jets; third-order jets at both ends
     axes = ("x", "t")
     title = "KS inverse (sequential)"
     start = 0.5
 
     def __init__(self, cfg: PinnConfig):
         from adjointsim import registry
-        from adjointsim.fit_cli import demo_problem
+        from adjointsim.fit_run import demo_problem
 
         self.cfg = cfg
         prob = demo_problem("ks-params")
@@ -412,12 +461,17 @@ class KSInverse(Problem):
         return out
 
 
-def make_problem(cfg: PinnConfig) -> Problem:
+_PROBLEMS: dict[str, type[PinnProblem]] = {"poisson": Poisson, "sobolev": Sobolev,
+                                           "ks-inverse": KSInverse}
+
+
+def make_problem(cfg: PinnConfig) -> PinnProblem:
+    """The problem of ``cfg``, validated first (nothing is allocated for a refused one)."""
     cfg.validate()
-    return {"poisson": Poisson, "sobolev": Sobolev, "ks-inverse": KSInverse}[cfg.problem](cfg)
+    return _PROBLEMS[cfg.problem](cfg)
 
 
-def make_weighting(cfg: PinnConfig, problem: Problem) -> Weighting:
+def make_weighting(cfg: PinnConfig, problem: PinnProblem) -> Weighting:
     fixed = problem.analytic_weights() if cfg.weighting == "fixed" else None
     reference = None if cfg.reference == "max" and cfg.weighting == "inverse-dirichlet" \
         else problem.reference
@@ -426,48 +480,23 @@ def make_weighting(cfg: PinnConfig, problem: Problem) -> Weighting:
 
 
 # ----------------------------------------------------------------------------- training
-def history_fields(terms: tuple[str, ...], extras: tuple[str, ...] = ()) -> list[str]:
-    return (["epoch"] + [f"loss/{t}" for t in terms] + [f"weight/{t}" for t in terms]
-            + ["total", "rel_l2", *extras, "lr", "skipped", "seconds"])
-
-
-def _write_history(path: Path, terms: tuple[str, ...], extras: tuple[str, ...],
-                   history: list[dict]) -> None:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=history_fields(terms, extras))
-    w.writeheader()
-    w.writerows(history)
-    write_text(path, buf.getvalue())
-
-
-def _write_weights(path: Path, terms: tuple[str, ...], history: list[dict]) -> None:
-    """Every weight refresh: the step, each λ and each term's gradient spread (ID, max/avg)."""
-    names = ["step", *terms, *(f"spread/{t}" for t in terms)]
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=names, restval="")
-    w.writeheader()
-    w.writerows(history)
-    write_text(path, buf.getvalue())
-
-
-def read_history(path: str | Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return [{k: float(v) if v != "" else math.nan for k, v in row.items()}
-                for row in csv.DictReader(f)]
-
-
 def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: bool = True,
-              plot: bool = True) -> dict:
-    """Train ``cfg`` in ``out`` (see the module doc); returns the result (also result.json).
-    A finished run is never overwritten: with ``resume`` its result is returned as it is."""
-    torch.set_num_threads(1)
+              plot: bool = True, overwrite: bool = False, threads: int = 1) -> dict:
+    """Train ``cfg`` in ``out`` (see the module doc) on ``threads`` torch threads; returns the
+    result (also result.json). A run already in ``out`` is continued with ``resume`` (a
+    finished one's result is returned as it is), discarded with ``overwrite``, and otherwise
+    never overwritten."""
+    torch.set_num_threads(threads)
     problem = make_problem(cfg)
-    config = asdict(cfg)
+    config = cfg.as_dict()
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    finished = finished_result(out, resume, config, RESULT_KEYS)
-    if finished is not None:
-        return finished
+    if overwrite and _holds_run(out, config):
+        discard(out, RUN_FILES)
+    else:
+        finished = finished_result(out, resume, config, RESULT_KEYS)
+        if finished is not None:
+            return finished
     model = problem.model()
     params = list(model.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr)
@@ -475,6 +504,11 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
                                                  gamma=0.1)
     weighting = make_weighting(cfg, problem)
     extras = tuple(problem.extras(model))
+    fields = ["epoch", *(f"loss/{t}" for t in problem.terms),
+              *(f"weight/{t}" for t in problem.terms), "total", "rel_l2", *extras, "lr",
+              "skipped", "seconds"]
+    # every weight refresh: the step, each λ and each term's gradient spread (ID, max/avg)
+    weight_fields = ["step", *problem.terms, *(f"spread/{t}" for t in problem.terms)]
     state = {"epoch": 0, "history": [], "skipped": 0, "streak": 0, "seconds": 0.0,
              "diverged": False, "phases": []}
     if ckpt_path.exists():
@@ -496,8 +530,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
         save_checkpoint({"config": config, "model": model.state_dict(),
                          "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                          "weighting": weighting.state_dict(), "state": state}, ckpt_path)
-        _write_history(out / "history.csv", problem.terms, extras, state["history"])
-        _write_weights(out / "weights.csv", problem.terms, weighting.history)
+        write_history(out / "history.csv", state["history"], fields)
+        write_history(out / "weights.csv", weighting.history, weight_fields)
 
     def log(epoch: int, losses: dict[str, float]) -> None:
         if state["history"] and state["history"][-1]["epoch"] == epoch:
@@ -587,7 +621,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
 
 
 # ----------------------------------------------------------------------------- plots
-def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
+def plot_run(problem: PinnProblem, model: nn.Module, history: list[dict], out: Path,
              cfg: PinnConfig, phases: list[dict] = ()) -> None:
     """``field.png``: exact solution, prediction, |error|; ``history.png``: each term, each
     weight, the relative L2 error and any learned coefficient over epochs, with the phase
@@ -609,70 +643,29 @@ def plot_run(problem: Problem, model: nn.Module, history: list[dict], out: Path,
 
     extras = tuple(problem.extras(model))
     fig, axes = plt.subplots(1, 3 + bool(extras), figsize=(12 + 4 * bool(extras), 3.4))
-    ep = [h["epoch"] for h in history]
+    path = out / "history.png"
     for t in problem.terms:
-        axes[0].plot(ep, [h[f"loss/{t}"] for h in history], label=f"L_{t}")
-        axes[1].plot(ep, [h[f"weight/{t}"] for h in history], label=f"λ_{t}")
-    axes[2].plot(ep, [h["rel_l2"] for h in history], color="k")
+        plot_history(path, {f"L_{t}": history}, "epoch", f"loss/{t}", "epoch", "loss",
+                     title="loss terms", ax=axes[0])
+        plot_history(path, {f"λ_{t}": history}, "epoch", f"weight/{t}", "epoch", "weight",
+                     title="weights", ax=axes[1])
+    plot_history(path, {"relative L2": history}, "epoch", "rel_l2", "epoch",
+                 "relative L2 error", title="relative L2 error", ax=axes[2])
     for name in extras:
-        axes[3].plot(ep, [h[name] for h in history], label=name)
-    names = ("loss terms", "weights", "relative L2 error", "coefficients")
-    for ax, name in zip(axes, names):
-        ax.set(yscale="log" if name != "coefficients" else "linear", xlabel="epoch",
-               title=name)
+        plot_history(path, {name: history}, "epoch", name, "epoch", "value",
+                     title="coefficients", log=False, ax=axes[3])
+    for ax in axes:
         for p in phases[:-1]:
             ax.axvline(p["epoch"], color="0.6", ls=":", lw=0.8)
-        if name != "relative L2 error":
-            ax.legend(fontsize=7)
     fig.suptitle(title)
-    save_figure(fig, out / "history.png", dpi=110)
+    save_figure(fig, path, dpi=110)
 
 
-# ----------------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("problem", help=f"one of {', '.join(PROBLEMS)}")
-    p.add_argument("--out", type=Path, default=None,
-                   help="default runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
-    p.add_argument("--resume", action="store_true", help="continue OUT's unfinished run")
-    p.add_argument("--no-progress", dest="progress", action="store_false")
-    for f in fields(PinnConfig):
-        if f.name == "problem":
-            continue
-        p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=str, default=None,
-                       help=f"default {f.default!r}")
-    p.set_defaults(func=run_command)
-
-
-def config_from_args(args: argparse.Namespace) -> PinnConfig:
-    values = {"problem": args.problem}
-    for f in fields(PinnConfig):
-        v = getattr(args, f.name, None)
-        if f.name == "problem" or v is None:
-            continue
-        kind = type(f.default)
-        try:
-            values[f.name] = kind(v)
-        except ValueError:
-            raise ValueError(f"--{f.name.replace('_', '-')} must be {kind.__name__}, "
-                             f"got {v!r}") from None
-    cfg = PinnConfig(**values)
-    cfg.validate()
-    return cfg
-
-
-def run_command(args: argparse.Namespace) -> int:
-    cfg = config_from_args(args)
-    name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
-    out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
-    with run_errors(out):
-        result = train_run(cfg, out, resume=args.resume, progress=args.progress)
-    if result["diverged"]:
-        print(f"{name} {cfg.weighting}: diverged after {MAX_SKIPS} non-finite losses in a row; "
-              f"run in {out}")
-        return 1
-    print(f"{name} {cfg.weighting} seed {cfg.seed}: relative L2 "
-          f"{result['rel_l2']:.3e} after {cfg.epochs} epochs ({result['seconds']:.0f} s), "
-          f"weights {', '.join(f'{k} {v:.3g}' for k, v in result['weights'].items())}"
-          + "".join(f", {k} {v:.4g}" for k, v in result["coefficients"].items())
-          + f"; run in {out}")
-    return 0
+def _holds_run(out: Path, config: dict) -> bool:
+    """Whether ``out`` holds a run of this command (of any configuration): what
+    ``overwrite`` may discard. Somebody else's files are never a run."""
+    try:
+        theirs = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(theirs, dict) and theirs.keys() == config.keys()

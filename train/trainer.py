@@ -32,7 +32,7 @@ from adjointsim.nets import DilatedResNet, ResNet, UNet, parameter_count
 from adjointsim.run import SEEDS, Config, Interval, discard, plot_history, write_history
 
 from . import data as datamod
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_checkpoint, restore, save_checkpoint
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
@@ -226,8 +226,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                             if ours.get(k) != theirs.get(k))
             raise UserError(f"{ckpt_path} was written with another configuration (differs in "
                             f"{', '.join(differ)}); train into a new --out or use --overwrite")
-        model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
+        restore(model, ckpt["model"], ckpt_path)
+        restore(optimizer, ckpt["optimizer"], ckpt_path)
         state, history = state | ckpt["state"], ckpt["history"]
         kept["best"] = ckpt.get("best")
     write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))

@@ -1,8 +1,8 @@
 """The ``pinn-poisson`` study: the multi-scale Poisson PINN over k × weighting × seeds
-(``adjointsim study pinn-poisson [--quick]``), against the authors' reported errors.
+(``adjointsim study pinn-poisson --size quick``), against the authors' reported errors.
 
-Each cell is one ``adjointsim pinn poisson`` run (:func:`adjointsim.train.pinn.train_run`) in its own
-directory; its row holds ``k``, ``weighting``, ``seed``, ``epochs`` and the final ``rel_l2``
+Each cell is one ``adjointsim pinn poisson`` run (:func:`adjointsim.train.pinn.train_run`) in its
+own directory; its row holds ``k``, ``weighting``, ``seed``, ``epochs`` and the final ``rel_l2``
 on the 100 × 100 grid. The report tables the median over seeds [min, max] per k and weighting
 next to the authors' figure (30,001 epochs, mean of 5 seeds), says per k whether ID is below
 uniform and max/avg, and plots the error against k.
@@ -13,8 +13,6 @@ from __future__ import annotations
 import math
 from pathlib import Path
 from statistics import median
-
-import torch
 
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
@@ -55,7 +53,6 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
-    torch.set_num_threads(1)
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot")}
     cfg = PinnConfig(problem="poisson", **keys)
     result = train_run(cfg, Path(run_dir), resume=True, progress=False,
@@ -177,7 +174,6 @@ def ks_cells(size: str, seeds: int | None) -> list[dict]:
 
 
 def ks_run_cell(cell: dict, run_dir: Path) -> dict:
-    torch.set_num_threads(1)
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot")}
     result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
                        plot=cell.get("plot", True))
