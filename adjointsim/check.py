@@ -122,7 +122,7 @@ def check_stepper(
     ctrl = (
         stepper.random_controls(rng, steps, batch, real)
         if stepper.control_shape is not None
-        else stepper._check_controls(None, steps, u0)
+        else stepper.check_controls(None, steps, u0)
     )
     p = np.array(stepper.param_values, dtype=real)
     subset = sorted({steps, *rng.choice(steps + 1, size=min(3, steps + 1), replace=False).tolist()})
@@ -145,14 +145,18 @@ def check_stepper(
         args["params" if which not in ("state", "controls") else which] = x
         u, c, q = args["state"], args["controls"], args["params"]
         dt = np.result_type(u, c, q, np.float64)
-        return stepper._run(u.astype(dt), steps, c.astype(dt), q.astype(dt), keep_all=True)
+        # Perturbed (complex-step) inputs on the fast path: rollout would reject complex
+        # states, and a step too large for the scene must come back non-finite, not raise.
+        return stepper.rollout_prepared(
+            u.astype(dt), steps, c.astype(dt), q.astype(dt), keep="all", check_finite=False
+        )
 
     def gradient(cot: dict[int, np.ndarray], which: str, dt: Any = real) -> np.ndarray:
         u = u0.astype(dt)
-        g = stepper._vjp(
+        g = stepper.vjp_prepared(
             u, steps, np.ascontiguousarray(ctrl, dtype=dt), p.astype(dt),
-            *stepper._check_cotangents({k: v.astype(dt) for k, v in cot.items()}, steps, u),
-            which not in ("state", "controls"), None, stepper.control_shape is not None,
+            *stepper.check_cotangents({k: v.astype(dt) for k, v in cot.items()}, steps, u),
+            wrt_params=which not in ("state", "controls"),
         )
         if which == "state":
             return g.state

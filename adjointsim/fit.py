@@ -195,7 +195,7 @@ def problem(
     # ------------------------------------------------------------ the fixed and starting values
     batch = 1
     if u0 is not None:
-        u0 = stepper._check_state(u0, "u0").astype(np.float64)
+        u0 = stepper.check_state(u0, "u0").astype(np.float64)
         batch = u0.shape[0]
     elif observations and isinstance(observations, Mapping):
         first = np.asarray(next(iter(observations.values())))
@@ -207,7 +207,7 @@ def problem(
                              "'state')")
         u0 = np.zeros(stepper.state_shape(batch))
     if controls is not None:
-        controls = stepper._check_controls(np.asarray(controls, dtype=np.float64), n, u0)
+        controls = stepper.check_controls(np.asarray(controls, dtype=np.float64), n, u0)
     elif fit_controls:
         controls = np.zeros((n, batch, *stepper.control_shape))
     p0 = dict(stepper.params)

@@ -20,6 +20,14 @@ A subclass supplies two numba kernels through ``_forward`` and ``_adjoint``:
     ``cbar[k] = (dS/dc_k)^T ubar`` when ``cbar`` is not empty, and, if ``want_p``, adds
     ``(dS/dp)^T ubar`` to ``pbar`` (float64, one entry per scene parameter).
 
+A subclass whose adjoint kernel can reuse values its forward kernel computes (stage fields, say)
+sets ``_records_tape = True`` and takes one more argument in each kernel:
+``_forward(states, n, ctrl, p, record)`` with ``record`` true records them (only asked with
+``S = n + 1``) and returns the tape, or None when it keeps none, and
+``_adjoint(..., want_p, tape)`` gets that tape back with (a prefix of) the states it was recorded
+for. A vjp records only when no parameter cotangents are wanted. The tape travels with the call,
+never on the stepper, so that one stepper serves nested or concurrent sweeps.
+
 Kernels are written so that they also run on complex arrays, with comparisons on ``.real``: the
 verification harness uses the complex-step derivative as an exact tangent-linear model.
 Everything else here (validation, checkpointing, non-finite detection) is shared.
@@ -89,7 +97,28 @@ class Cotangents:
 
 
 class Stepper:
-    """Base class of every solver. Subclasses set the class attributes and the two kernels."""
+    """Base class of every solver. Subclasses set the class attributes and the two kernels.
+
+    :meth:`rollout`, :meth:`step` and :meth:`vjp` validate their inputs on every call. A caller
+    that runs and reverses the same inputs more than once, or that has validated them already
+    (a closed loop calls the solver once per step), validates once and takes the fast path::
+
+        u0, n, controls, params = stepper.prepare(u0, n, controls, params)
+        traj = stepper.rollout_prepared(u0, n, controls, params, keep="all")
+        cot, cmap = stepper.check_cotangents({-1: w}, n, u0)  # w: the cotangent of u_n
+        g = stepper.vjp_prepared(u0, n, controls, params, cot, cmap, trajectory=traj)
+
+    :meth:`prepare` (or its parts :meth:`check_state`, :meth:`check_controls`,
+    :meth:`param_array`, and :meth:`check_cotangents` for a vjp) returns the arrays the fast
+    path takes; :meth:`rollout_prepared` and :meth:`vjp_prepared` check nothing about them, so
+    pass only what those returned (or arrays of the same form, such as their complex-step
+    perturbations), and never write to them while a result still depends on them. The fast
+    path gives bit for bit the results of the checked one, and a rollout that blows up still
+    raises :class:`NonFiniteStateError`.
+
+    A stepper keeps no per-call state (only caches: coefficient tables, a reusable tape
+    buffer), so one stepper serves nested sweeps and several threads at once.
+    """
 
     #: registry name, e.g. ``"diffusion1d-ftcs"``
     name: ClassVar[str]
@@ -108,10 +137,9 @@ class Stepper:
     #: differentiable scene parameters and their values, in kernel order
     param_names: tuple[str, ...] = ()
     param_values: tuple[float, ...] = ()
-    #: True while a vjp's keep-all forward passes record stage fields that the adjoint kernel
-    #: reuses (set by the steppers that keep such a tape); the adjoint sweep then also runs the
-    #: last step of each segment it recomputes, when the budget has room, so the tape covers it
-    _recording: bool = False
+    #: True when the kernels keep a tape (see the module docstring): a vjp without parameter
+    #: cotangents then records one whenever it recomputes a segment whole with a state to spare
+    _records_tape: ClassVar[bool] = False
 
     # ----------------------------------------------------------------- subclass hooks
     def _forward(self, states: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray) -> None:
@@ -197,13 +225,7 @@ class Stepper:
         """
         if keep not in ("last", "all"):
             raise ValueError(f"keep must be 'last' or 'all', not {keep!r}")
-        u0 = self._check_state(u0, "u0")
-        n = _check_steps(n)
-        ctrl = self._check_controls(controls, n, u0)
-        p = self.param_array(params, u0.dtype)
-        states = self._run(u0, n, ctrl, p, keep_all=keep == "all")
-        self._raise_if_nonfinite(states, keep == "all", u0, ctrl, p, n=n)
-        return states if keep == "all" else states[n % 2]
+        return self.rollout_prepared(*self.prepare(u0, n, controls, params), keep=keep)
 
     def vjp(
         self,
@@ -234,26 +256,37 @@ class Stepper:
         empty batch (B = 0) returns empty cotangents and zero parameter cotangents. Neither
         calls the kernels.
         """
-        u0 = self._check_state(u0, "u0")
-        n = _check_steps(n)
-        ctrl = self._check_controls(controls, n, u0)
-        p = self.param_array(params, u0.dtype)
-        cot, cmap = self._check_cotangents(cotangents, n, u0)
+        u0, n, ctrl, p = self.prepare(u0, n, controls, params)
+        cot, cmap = self.check_cotangents(cotangents, n, u0)
         if trajectory is not None:
             trajectory = np.asarray(trajectory)
-        if trajectory is not None and (
-            trajectory.shape != (n + 1, *u0.shape) or trajectory.dtype != u0.dtype
-        ):
-            raise ValueError(
-                f"{self.name}: trajectory has shape {trajectory.shape} and dtype "
-                f"{trajectory.dtype}; expected {(n + 1, *u0.shape)} and {u0.dtype}, "
-                'as returned by rollout(..., keep="all")'
-            )
-        return self._vjp(
-            u0, n, ctrl, p, cot, cmap, wrt_params, checkpoint, controls is not None, trajectory
-        )
+            if trajectory.shape != (n + 1, *u0.shape) or trajectory.dtype != u0.dtype:
+                raise ValueError(
+                    f"{self.name}: trajectory has shape {trajectory.shape} and dtype "
+                    f"{trajectory.dtype}; expected {(n + 1, *u0.shape)} and {u0.dtype}, "
+                    'as returned by rollout(..., keep="all")'
+                )
+        g = self.vjp_prepared(u0, n, ctrl, p, cot, cmap, wrt_params, checkpoint, trajectory)
+        return g if controls is not None else Cotangents(g.state, None, g.params)
 
-    # ----------------------------------------------------------------- shared machinery
+    # ----------------------------------------------------------------- validate once ...
+    def prepare(
+        self,
+        u0: np.ndarray,
+        n: int,
+        controls: np.ndarray | None = None,
+        params: Mapping[str, float] | Sequence[float] | np.ndarray | None = None,
+    ) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+        """Validate a rollout's inputs once: ``(u0, n, controls, params)`` as the fast path
+        (:meth:`rollout_prepared`, :meth:`vjp_prepared`) takes them.
+
+        Raises what :meth:`rollout` raises for bad inputs. ``controls=None`` becomes an array
+        with a zero-length first axis (an uncontrolled rollout); ``params`` becomes the
+        parameter array of :meth:`param_array`, in the state's dtype."""
+        u0 = self.check_state(u0, "u0")
+        n = _check_steps(n)
+        return u0, n, self.check_controls(controls, n, u0), self.param_array(params, u0.dtype)
+
     def param_array(
         self,
         params: Mapping[str, float] | Sequence[float] | np.ndarray | None,
@@ -298,7 +331,9 @@ class Stepper:
             cache[dtype] = (self.param_values, out)
         return out
 
-    def _check_state(self, u: np.ndarray, what: str) -> np.ndarray:
+    def check_state(self, u: np.ndarray, what: str = "u0") -> np.ndarray:
+        """``u`` as a C-contiguous float32 or float64 state of shape (B, C, *grid), after
+        checking that it is one and finite (errors name it ``what``)."""
         u = np.asarray(u)
         if u.dtype not in FLOAT_DTYPES:
             raise TypeError(
@@ -319,7 +354,10 @@ class Stepper:
             )
         return np.ascontiguousarray(u)
 
-    def _check_controls(self, controls: np.ndarray | None, n: int, u0: np.ndarray) -> np.ndarray:
+    def check_controls(self, controls: np.ndarray | None, n: int, u0: np.ndarray) -> np.ndarray:
+        """The controls of an ``n``-step rollout from the checked state ``u0``, checked: shape
+        (n, B, *control_shape), the state's dtype, finite. None gives the uncontrolled form, a
+        zero-length first axis."""
         shape = self.control_shape
         if controls is None:
             return np.zeros((0, u0.shape[0], *(shape or ())), dtype=u0.dtype)
@@ -341,10 +379,13 @@ class Stepper:
             raise NonFiniteInputError(f"{self.name}: controls contain non-finite values")
         return np.ascontiguousarray(c)
 
-    def _check_cotangents(
+    def check_cotangents(
         self, cotangents: np.ndarray | Mapping[int, np.ndarray], n: int, u0: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Stack the cotangents, one row per step named, and map each step to its row (or -1)."""
+        """The cotangents of an ``n``-step rollout from the checked state ``u0``, in any form
+        :meth:`vjp` takes, as :meth:`vjp_prepared` takes them: ``(rows, cmap)``, the distinct
+        cotangents stacked (k, B, C, *grid) in the state's dtype, and for each state
+        u_0 .. u_n the row of its cotangent, or -1 (int64, shape (n + 1,))."""
         if isinstance(cotangents, Mapping):
             rows: dict[int, np.ndarray] = {}
             for key, value in cotangents.items():
@@ -384,6 +425,85 @@ class Stepper:
             raise ValueError(f"{self.name}: {what} has non-finite values")
         return a
 
+    # ----------------------------------------------------------------- ... then run fast
+    def rollout_prepared(
+        self,
+        u0: np.ndarray,
+        n: int,
+        controls: np.ndarray,
+        params: np.ndarray,
+        keep: str = "last",
+        check_finite: bool = True,
+    ) -> np.ndarray:
+        """:meth:`rollout` of inputs :meth:`prepare` returned, without checking them again.
+
+        ``keep="all"`` returns u_0 .. u_n; anything else u_n, as a view into the rollout's
+        two-state buffer. ``check_finite=False`` returns non-finite states as they came instead
+        of raising :class:`NonFiniteStateError` (for probes of how far a scene stays stable).
+        """
+        keep_all = keep == "all"
+        states = self._run(u0, n, controls, params, keep_all)
+        # u_n (or the two-state buffer) suffices: non-finite values propagate.
+        if check_finite and not _all_finite(states[-1] if keep_all else states):
+            self._raise_nonfinite(states, keep_all, u0, controls, params, n)
+        return states if keep_all else states[n % 2]
+
+    def vjp_prepared(
+        self,
+        u0: np.ndarray,
+        n: int,
+        controls: np.ndarray,
+        params: np.ndarray,
+        cotangents: np.ndarray,
+        cmap: np.ndarray,
+        wrt_params: bool = False,
+        checkpoint: int | None = None,
+        trajectory: np.ndarray | None = None,
+    ) -> Cotangents:
+        """:meth:`vjp` of inputs :meth:`prepare` and :meth:`check_cotangents` returned, without
+        checking them again.
+
+        ``trajectory``: u_0 .. u_{n-1} (or more) of the rollout of these inputs, e.g. from
+        ``rollout_prepared(..., keep="all")``. The control cotangents come back as an array
+        even for an uncontrolled rollout (then with a zero-length first axis).
+        """
+        if checkpoint is not None and (
+            isinstance(checkpoint, bool)
+            or not isinstance(checkpoint, numbers.Integral)
+            or checkpoint < MIN_CHECKPOINT
+        ):
+            raise ValueError(
+                f"checkpoint must be an integer of at least {MIN_CHECKPOINT} stored states "
+                f"(u_0 and the two-state buffer the forward kernel advances in), not "
+                f"{checkpoint!r}; pass None to keep every state"
+            )
+        dtype = np.result_type(u0, params, cotangents)
+        last = cmap[n]
+        ubar = cotangents[last].astype(dtype) if last >= 0 else np.zeros(u0.shape, dtype=dtype)
+        cbar = np.zeros(controls.shape, dtype=dtype)
+        pbar = np.zeros(len(self.param_names), dtype=np.float64)
+        if n and u0.shape[0]:  # else nothing to reverse: no kernel call
+            if trajectory is not None:  # a closed loop's step lands here: no sweep to plan
+                self._adjoint(np.ascontiguousarray(trajectory[:n]), controls, params, cotangents,
+                              cmap[:n], ubar, cbar, pbar, wrt_params)
+            else:
+                budget = n + 2 if checkpoint is None else int(checkpoint)
+                _AdjointSweep(
+                    self, controls, params, cotangents, cmap, ubar, cbar, pbar, wrt_params
+                ).reverse(u0.astype(dtype, copy=False), n, budget)
+        if not _all_finite(ubar):
+            self.rollout_prepared(u0, n, controls, params)
+            raise FloatingPointError(
+                f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
+                "stayed finite; the cotangents or the rollout length are too large"
+            )
+        return Cotangents(
+            state=ubar,
+            controls=cbar,
+            params=dict(zip(self.param_names, pbar.tolist())) if wrt_params else None,
+        )
+
+    # ----------------------------------------------------------------- shared machinery
     def _run(
         self, u0: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray, keep_all: bool
     ) -> np.ndarray:
@@ -396,56 +516,7 @@ class Stepper:
             self._forward(states, n, ctrl, p)
         return states
 
-    def _vjp(
-        self,
-        u0: np.ndarray,
-        n: int,
-        ctrl: np.ndarray,
-        p: np.ndarray,
-        cot: np.ndarray,
-        cmap: np.ndarray,
-        wrt_params: bool,
-        checkpoint: int | None,
-        controlled: bool,
-        trajectory: np.ndarray | None = None,
-    ) -> Cotangents:
-        if checkpoint is not None and (
-            isinstance(checkpoint, bool)
-            or not isinstance(checkpoint, numbers.Integral)
-            or checkpoint < MIN_CHECKPOINT
-        ):
-            raise ValueError(
-                f"checkpoint must be an integer of at least {MIN_CHECKPOINT} stored states "
-                f"(u_0 and the two-state buffer the forward kernel advances in), not "
-                f"{checkpoint!r}; pass None to keep every state"
-            )
-        dtype = np.result_type(u0, p, cot)
-        last = cmap[n]
-        ubar = cot[last].astype(dtype) if last >= 0 else np.zeros(u0.shape, dtype=dtype)
-        cbar = np.zeros(ctrl.shape, dtype=dtype)
-        pbar = np.zeros(len(self.param_names), dtype=np.float64)
-        if n and u0.shape[0]:  # else nothing to reverse: no kernel call
-            if trajectory is not None:  # a closed loop's step lands here: no sweep to plan
-                self._adjoint(np.ascontiguousarray(trajectory[:n]), ctrl, p, cot, cmap[:n],
-                              ubar, cbar, pbar, wrt_params)
-            else:
-                budget = n + 2 if checkpoint is None else int(checkpoint)
-                _AdjointSweep(self, ctrl, p, cot, cmap, ubar, cbar, pbar, wrt_params).reverse(
-                    u0.astype(dtype, copy=False), n, budget)
-        if not _all_finite(ubar):
-            states = self._run(u0, n, ctrl, p, keep_all=False)
-            self._raise_if_nonfinite(states, False, u0, ctrl, p, n=n)
-            raise FloatingPointError(
-                f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
-                "stayed finite; the cotangents or the rollout length are too large"
-            )
-        return Cotangents(
-            state=ubar,
-            controls=cbar if controlled else None,
-            params=dict(zip(self.param_names, pbar.tolist())) if wrt_params else None,
-        )
-
-    def _raise_if_nonfinite(
+    def _raise_nonfinite(
         self,
         states: np.ndarray,
         keep_all: bool,
@@ -454,13 +525,11 @@ class Stepper:
         p: np.ndarray,
         n: int,
     ) -> None:
-        """Zero cost when the rollout stayed finite; otherwise find the first bad step.
+        """Find the first non-finite step of a rollout that became non-finite, and raise.
 
         ``states`` is what :meth:`_run` returned for the ``n`` steps (for a ping-pong buffer,
         ``n`` bounds the replay).
         """
-        if _all_finite(states[-1] if keep_all else states):
-            return
         offset = 0
         if not keep_all:
             # Replay in chunks that keep every state until one chunk holds the first bad step.
@@ -503,8 +572,8 @@ class _AdjointSweep:
 
         t·n - β(s - 1, t - 1),   β(a, b) = C(a + b, a),  t the least with β(s - 2, t) ≥ n,
 
-    the fewest possible, plus, for a stepper that records a stage tape (``_recording``), one
-    step per segment recomputed whole with a slot to spare (which spares the adjoint kernel
+    the fewest possible, plus, when the sweep records a tape (``record``), one step per
+    segment recomputed whole with a slot to spare (which spares the adjoint kernel
     recomputing that segment's stages).
     """
 
@@ -512,15 +581,26 @@ class _AdjointSweep:
         self.stepper, self.ctrl, self.p = stepper, ctrl, p
         self.cot, self.cmap, self.ubar, self.cbar, self.pbar = cot, cmap, ubar, cbar, pbar
         self.want_p = want_p
+        # Parameter cotangents need what a tape leaves out (e.g. the spectral stages).
+        self.record = stepper._records_tape and not want_p
 
     def _controls(self, a: np.ndarray, lo: int, hi: int) -> np.ndarray:
         return a[lo:hi] if a.shape[0] else a
 
-    def reverse_stored(self, inputs: np.ndarray, lo: int, hi: int) -> None:
+    def reverse_stored(self, inputs: np.ndarray, lo: int, hi: int, *tape: Any) -> None:
+        """Reverse steps lo .. hi - 1 from their inputs (and the tape recorded with them)."""
         self.stepper._adjoint(
             inputs, self._controls(self.ctrl, lo, hi), self.p, self.cot, self.cmap[lo:hi],
-            self.ubar, self._controls(self.cbar, lo, hi), self.pbar, self.want_p,
+            self.ubar, self._controls(self.cbar, lo, hi), self.pbar, self.want_p, *tape,
         )
+
+    def _recorded(self, u: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, Any]:
+        """u_lo .. u_hi and the tape the forward kernel recorded on the way."""
+        states = np.empty((hi - lo + 1, *u.shape), dtype=np.result_type(u, self.p))
+        states[0] = u
+        tape = self.stepper._forward(states, hi - lo, self._controls(self.ctrl, lo, hi),
+                                     self.p, True)
+        return states, tape
 
     def _advance(self, u: np.ndarray, lo: int, hi: int) -> np.ndarray:
         """The ping-pong buffer after advancing u_lo to u_hi (in slot (hi - lo) % 2)."""
@@ -533,13 +613,18 @@ class _AdjointSweep:
         while hi > 0:
             u, lo, free = stored[-1]
             m = hi - lo
-            if m <= free:
+            if self.record and m < free:
+                # A tape covers whole steps: recompute the last one too, with the slot to spare.
+                inputs, tape = self._recorded(u, lo, hi)
+                self.reverse_stored(inputs[:m], lo, hi, tape)
+                del inputs, tape, stored[-1]  # released before the next buffer is allocated
+                hi = lo
+            elif m <= free:
                 # The adjoint kernel needs the inputs u_lo .. u_{hi-1}: m - 1 steps.
-                k = m if self.stepper._recording and m < free else m - 1
                 inputs = self.stepper._run(
-                    u, k, self._controls(self.ctrl, lo, lo + k), self.p, keep_all=True
+                    u, m - 1, self._controls(self.ctrl, lo, hi - 1), self.p, keep_all=True
                 )
-                self.reverse_stored(inputs[:m], lo, hi)
+                self.reverse_stored(inputs, lo, hi)
                 del inputs, stored[-1]  # released before the next buffer is allocated
                 hi = lo
             elif free == 2:

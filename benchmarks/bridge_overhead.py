@@ -6,21 +6,23 @@ A controller calls the solver once per step, so the bridge's fixed cost (validat
 handling, the autograd node, the adjoint's set-up) is paid every step. Side by side in one run,
 for tiny scenes (batch 8, controlled):
 
-* ``kernel``: the stepper's numba kernels alone (``_forward`` one step; ``_adjoint`` of it),
-  on preallocated arrays: the floor;
+* ``fast``: the stepper's fast path alone on prepared arrays (``rollout_prepared`` of one step;
+  ``vjp_prepared`` of it over that trajectory): the numerics, the allocation of the states and
+  cotangents and the non-finite check of the result, no input checks;
 * ``bridge``: ``bridge.step(stepper, u, control)`` with ``u`` and ``control`` requiring grad
   (so the forward keeps what the backward needs), then ``torch.autograd.grad`` of the output;
-* ``floor``: the least any Python autograd bridge can cost: a bare ``torch.autograd.Function``
-  whose forward and backward call the same kernels on preallocated arrays, with no checks, no
-  copies and no allocation (unsafe, for reference only);
+* ``floor``: the least an autograd bridge over the fast path can cost: a bare
+  ``torch.autograd.Function`` whose forward and backward call the same fast path, with no
+  checks and no copies (unsafe, for reference only);
 * ``torch``: a one-op autograd graph (``u * 1.0`` and its gradient), torch's own per-node and
   engine cost.
 
 Printed: median µs per call over ``--repeats`` round-robin batches of ``--calls`` calls, and the
-bridge's overhead per step, forward alone and forward + backward: bridge − kernel (everything
-above the numerics, torch's autograd machinery included) and bridge − floor (what the bridge
-adds to the cheapest possible custom autograd node: validation, copies, set-up). Target
-(issue 9): ≤ 20 µs per step. Times are CPU time of this process (see ``_per_call_us``).
+bridge's overhead per step, forward alone and forward + backward: bridge − fast (everything
+above the stepper's fast path, torch's autograd machinery included) and bridge − floor (what the
+bridge adds to the cheapest custom autograd node: validation, copies, set-up). Target
+(a closed loop calls the solver once per step): ≤ 20 µs per step. Times are CPU time of this
+process (see ``_per_call_us``).
 """
 
 from __future__ import annotations
@@ -34,9 +36,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from adjointsim.train import bridge  # noqa: E402
 
 import adjointsim  # noqa: E402
+from adjointsim.train import bridge  # noqa: E402
 
 BATCH = 8
 SCENES = {
@@ -63,24 +65,19 @@ def _per_call_us(fn, calls: int, repeats: int) -> float:
 
 def _candidates(stepper) -> dict:
     rng = np.random.default_rng(0)
-    u_np = stepper.random_state(rng, BATCH)
-    c_np = stepper.random_controls(rng, 1, BATCH)
-    p = stepper.param_array(None, np.float64)
-    states = np.empty((2, *u_np.shape))
-    states[0] = u_np
-    inputs = np.ascontiguousarray(states[:1])
+    u_np, _, c_np, p = stepper.prepare(
+        stepper.random_state(rng, BATCH), 1, stepper.random_controls(rng, 1, BATCH)
+    )
     cot_np = rng.standard_normal((1, *u_np.shape))
-    cmap = np.array([-1, 0], dtype=np.int64)
-    ubar, cbar = np.zeros_like(u_np), np.zeros_like(c_np)
-    pbar = np.zeros(len(stepper.param_names))
+    cmap = np.array([-1, 0], dtype=np.int64)  # the cotangent of u_1 only, as check_cotangents
+    traj = stepper.rollout_prepared(u_np, 1, c_np, p, keep="all")
 
-    def kernel_forward():
-        stepper._forward(states, 1, c_np, p)
+    def fast_forward():
+        stepper.rollout_prepared(u_np, 1, c_np, p, keep="all")
 
-    def kernel_both():
-        stepper._forward(states, 1, c_np, p)
-        ubar[:] = cot_np[0]
-        stepper._adjoint(inputs, c_np, p, cot_np, cmap[:1], ubar, cbar, pbar, False)
+    def fast_both():
+        states = stepper.rollout_prepared(u_np, 1, c_np, p, keep="all")
+        stepper.vjp_prepared(u_np, 1, c_np, p, cot_np, cmap, trajectory=states)
 
     u = torch.from_numpy(u_np).requires_grad_()
     c = torch.from_numpy(c_np[0]).requires_grad_()
@@ -95,14 +92,12 @@ def _candidates(stepper) -> dict:
     class Floor(torch.autograd.Function):
         @staticmethod
         def forward(ctx, u, c):
-            stepper._forward(states, 1, c_np, p)
-            return torch.from_numpy(states[1])
+            return torch.from_numpy(stepper.rollout_prepared(u_np, 1, c_np, p))
 
         @staticmethod
         def backward(ctx, g):
-            ubar[:] = g.numpy()
-            stepper._adjoint(inputs, c_np, p, cot_np, cmap[:1], ubar, cbar, pbar, False)
-            return torch.from_numpy(ubar), torch.from_numpy(cbar[0])
+            r = stepper.vjp_prepared(u_np, 1, c_np, p, g.numpy()[None], cmap, trajectory=traj)
+            return torch.from_numpy(r.state), torch.from_numpy(r.controls[0])
 
     def floor_forward():
         Floor.apply(u, c)
@@ -117,7 +112,7 @@ def _candidates(stepper) -> dict:
         torch.autograd.grad(u * 1.0, (u,), cot)
 
     return {
-        "kernel": (kernel_forward, kernel_both),
+        "fast": (fast_forward, fast_both),
         "bridge": (bridge_forward, bridge_both),
         "floor": (floor_forward, floor_both),
         "torch": (torch_forward, torch_both),
@@ -144,7 +139,7 @@ def main() -> None:
         print(f"  {'':8s} {'forward':>10s} {'fwd+bwd':>10s}")
         for name in cands:
             print(f"  {name:8s} {med[name, 0]:10.1f} {med[name, 1]:10.1f}")
-        for ref in ("kernel", "floor"):
+        for ref in ("fast", "floor"):
             fwd = med["bridge", 0] - med[ref, 0]
             both = med["bridge", 1] - med[ref, 1]
             print(

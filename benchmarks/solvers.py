@@ -6,7 +6,7 @@ For each solver: 1D grids at N = 256 and 2D grids at 128², batch 1 and 64, a ro
 ``--steps`` steps. Prints per-step medians of the forward rollout, of the adjoint sweep alone
 (the backward kernels over a stored trajectory) and of the whole ``vjp`` (forward with storage
 plus adjoint), the ratios adjoint/forward, and the speed-up over NumPy measured in the same run.
-Targets (issue 2): adjoint/forward ≤ 2.5 and numba ≥ 5x faster than NumPy at batch 1.
+Targets: adjoint/forward ≤ 2.5 and numba ≥ 5x faster than NumPy at batch 1.
 """
 
 from __future__ import annotations
@@ -45,14 +45,12 @@ def bench(name: str, batch: int, steps: int, repeats: int, numpy_rollouts: dict)
     stepper = cls.benchmark_scene(SIZES[ndim])
     rng = np.random.default_rng(0)
     u0 = stepper.random_state(rng, batch)
-    ctrl = stepper._check_controls(None, steps, u0)
-    p = stepper.param_array(None, u0.dtype)
-    traj = stepper._run(u0, steps, ctrl, p, keep_all=True)
-    cot, cmap = stepper._check_cotangents(np.ones_like(u0), steps, u0)
+    u0, _, ctrl, p = stepper.prepare(u0, steps)
+    traj = stepper.rollout_prepared(u0, steps, ctrl, p, keep="all")
+    cot, cmap = stepper.check_cotangents(np.ones_like(u0), steps, u0)
 
     def adjoint():
-        ubar = np.ones_like(u0)
-        stepper._adjoint(traj[:steps], ctrl, p, cot, cmap, ubar, ctrl, np.zeros(len(p)), False)
+        stepper.vjp_prepared(u0, steps, ctrl, p, cot, cmap, trajectory=traj)
 
     fwd = median_time(lambda: stepper.rollout(u0, steps), repeats)
     adj = median_time(adjoint, repeats)

@@ -42,9 +42,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
 USER_ERRORS = (UserError, ValueError, registry.UnknownSolverError, OSError)
 
 
+class _Parser(argparse.ArgumentParser):
+    """A parser whose mistakes are user errors: one line through :func:`main`, exit 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise UserError(f"{message} (see {self.prog} --help)")
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The whole parser; only ``command``'s module is imported to fill in its options."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="adjointsim", description="Solvers with hand-written discrete adjoints, and "
         "training of neural networks through them.",
         epilog="adjointsim COMMAND --help shows a command's options.")

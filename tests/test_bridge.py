@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import torch
-from adjointsim.train import bridge
 
 import adjointsim
+from adjointsim.train import bridge
 
 NAMES = adjointsim.names()
 
@@ -116,6 +116,39 @@ def test_no_grad_keeps_no_trajectory_even_for_inputs_that_require_grad(monkeypat
     assert saved == [None, None, None]
 
 
+@pytest.mark.parametrize("keep", ["last", "all"])
+@pytest.mark.parametrize("checkpoint", [None, 3])
+def test_inputs_are_validated_once_and_both_passes_take_the_fast_path(keep, checkpoint):
+    stepper = adjointsim.get("ks1d-etdrk4").default()  # a taped stepper
+    n = 4
+    u0, ctrl, params = _inputs(stepper, n)
+    calls: dict[str, int] = {}
+    for name in ("prepare", "check_state", "check_controls", "check_cotangents", "param_array",
+                 "rollout", "vjp", "rollout_prepared", "vjp_prepared"):
+        method = getattr(stepper, name)
+
+        def counted(*args, _name=name, _method=method, **kwargs):
+            calls[_name] = calls.get(_name, 0) + 1
+            return _method(*args, **kwargs)
+
+        setattr(stepper, name, counted)
+    out = bridge.rollout(stepper, u0, n, ctrl, params, keep=keep, checkpoint=checkpoint)
+    w = torch.from_numpy(np.random.default_rng(3).standard_normal(out.shape))
+    grads = torch.autograd.grad(out, (u0, ctrl, params), w)
+    assert calls == {"check_state": 1, "check_controls": 1, "param_array": 1,
+                     "rollout_prepared": 1, "vjp_prepared": 1}
+    # ... and the same numbers as the checked path, bit for bit.
+    arrays = [x.detach().numpy() for x in (u0, ctrl, params)]
+    cot = w.numpy() if keep == "all" else {-1: w.numpy()}
+    ref = stepper.vjp(arrays[0], n, cot, arrays[1], arrays[2], wrt_params=True,
+                      checkpoint=checkpoint)
+    expected = (ref.state, ref.controls, np.array(list(ref.params.values())))
+    for got, want in zip(grads, expected, strict=True):
+        assert got.numpy().tobytes() == want.tobytes()
+    rolled = stepper.rollout(arrays[0], n, arrays[1], arrays[2], keep=keep)
+    assert out.detach().numpy().tobytes() == rolled.tobytes()
+
+
 def test_float32_in_float32_out():
     stepper = adjointsim.get("diffusion1d-ftcs").default()
     u0, ctrl, params = _inputs(stepper, 4, dtype=torch.float32)
@@ -139,7 +172,7 @@ def test_bad_tensors_get_clear_errors():
         bridge.rollout(stepper, meta, 4)
 
 
-# ------------------------------------------------------------------ edges (issue 8)
+# ------------------------------------------------------------------ edges
 @pytest.mark.parametrize("name", NAMES)
 def test_zero_steps_and_empty_batches_through_the_bridge(name):
     """n = 0 returns u0 (the cotangent passes straight through), B = 0 gives empty results,

@@ -34,7 +34,7 @@ def _small(name: str):
 def _perturbed(stepper, rel: float, only_float32: bool = False):
     """The same scene whose adjoint returns every cotangent scaled by 1 + rel (or only when
     it runs in float32: a bug of the float32 path alone)."""
-    vjp = stepper._vjp
+    vjp = stepper.vjp_prepared
 
     def wrong(*args, **kwargs):
         g = vjp(*args, **kwargs)
@@ -47,7 +47,7 @@ def _perturbed(stepper, rel: float, only_float32: bool = False):
             params=None if g.params is None else {k: v * (1 + rel) for k, v in g.params.items()},
         )
 
-    stepper._vjp = wrong
+    stepper.vjp_prepared = wrong
     return stepper
 
 
@@ -180,7 +180,7 @@ def test_float32_roundoff_allowance_is_capped():
 def test_cli_rejects_non_positive_steps(steps, capsys):
     assert main(["gradcheck", "diffusion1d-ftcs", "--steps", steps]) == 2
     err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "--steps must be a positive integer" in err
+    assert "\n" not in err and f"--steps: must be ≥ 1, not {steps}" in err
 
 
 def test_rows_without_a_measurement_are_json_null():
@@ -192,7 +192,7 @@ def test_rows_without_a_measurement_are_json_null():
 
 
 def test_cli_json_is_strict_json_with_reference_errors(capsys):
-    assert main(["gradcheck", "ks1d-etdrk1", "--steps", "5", "--json"]) == 0
+    assert main(["gradcheck", "ks1d-etdrk1", "--steps", "5", "--json", "-"]) == 0
 
     def reject(constant):
         raise AssertionError(f"{constant} is not JSON")

@@ -1,4 +1,4 @@
-"""The Stepper contract at its edges, for every registered solver (issue 8).
+"""The Stepper contract at its edges, for every registered solver.
 
 Zero steps, empty batches, float32 and float64, cotangent keys that name the same step from both
 ends, every checkpoint budget from the minimum up, and the cost and memory of binomial
@@ -76,7 +76,7 @@ def same_cotangents(a, b, dtype) -> None:
     close(list(a.params.values()), list(b.params.values()), dtype)
 
 
-# ---------------------------------------------------------------------- defect 1: zero steps
+# ---------------------------------------------------------------------- zero steps
 @pytest.mark.parametrize("name", NAMES)
 def test_defect1_zero_steps_return_the_input(name, monkeypatch):
     stepper = adjointsim.get(name).default()
@@ -128,7 +128,7 @@ def test_defect1_nonfinite_replay_terminates():
         stepper.rollout(u, 700)
 
 
-# ------------------------------------------------------------- defect 5: keys naming one step
+# ------------------------------------------------------------- keys naming one step
 def test_defect5_cotangent_keys_naming_one_step_are_summed():
     stepper = FTCS(n=12)
     rng = np.random.default_rng(2)
@@ -149,7 +149,7 @@ def test_defect5_cotangent_keys_naming_one_step_are_summed():
         stepper.vjp(u, n, {2: bad})
 
 
-# ------------------------------------------------------------------ empty batch (defect 8)
+# ------------------------------------------------------------------ empty batch
 @pytest.mark.parametrize("name", NAMES)
 def test_defect8_empty_batch_runs_no_kernel(name):
     stepper = adjointsim.get(name).default()
@@ -174,7 +174,7 @@ def test_defect8_empty_batch_runs_no_kernel(name):
     assert calls == {"forward": 0, "adjoint": 0, "steps": 0}
 
 
-# ------------------------------------------------------------ defect 4: checkpointing cost
+# ------------------------------------------------------------ checkpointing cost
 def binomial_optimum(n: int, s: int) -> int:
     """Fewest forward steps to reverse n steps with a budget of s states (Revolve with s - 2
     stored states, the budget also counting the two-state buffer the kernels advance in)."""
@@ -356,3 +356,30 @@ def test_contract_at_the_edges_many(name):
         check_edge_case(*case)
 
     run()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_float32_stays_float32_and_agrees_with_float64(name):
+    """Every solver, once: float32 inputs give float32 states and cotangents (state, controls,
+    parameters as numbers), within float32 round-off of the float64 run."""
+    stepper = adjointsim.get(name).default()
+    rng = np.random.default_rng(3)
+    n = 5
+    u0 = stepper.random_state(rng, 2)
+    c = None if stepper.control_shape is None else 0.1 * stepper.random_controls(rng, n, 2)
+    cot = rng.standard_normal((n + 1, *u0.shape))
+    out64 = stepper.rollout(u0, n, c)
+    g64 = stepper.vjp(u0, n, cot, c, wrt_params=True)
+    u32, cot32 = u0.astype(np.float32), cot.astype(np.float32)
+    c32 = None if c is None else c.astype(np.float32)
+    out32 = stepper.rollout(u32, n, c32)
+    g32 = stepper.vjp(u32, n, cot32, c32, wrt_params=True)
+    assert out32.dtype == g32.state.dtype == np.float32
+    pairs = [(out32, out64), (g32.state, g64.state)]
+    if c is not None:
+        assert g32.controls.dtype == np.float32
+        pairs.append((g32.controls, g64.controls))
+    for a, b in pairs:
+        assert np.abs(a - b).max() <= 2e-3 * max(np.abs(b).max(), 1.0), name
+    for k, v in g64.params.items():
+        assert abs(g32.params[k] - v) <= 2e-3 * max(abs(v), 1.0), (name, k)

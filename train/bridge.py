@@ -7,10 +7,10 @@ stores nothing; otherwise it keeps the trajectory, or only checkpoints when ``ch
 set, so that the backward pass does not recompute it.
 
 A closed loop calls the solver once per step, so the per-call cost matters: the inputs are
-validated once, in the forward pass (the stepper's own checks of shape, dtype and finiteness;
-the bridge adds only the torch-specific ones: device, contiguity), and the backward pass hands
-the validated arrays straight to the stepper's adjoint sweep instead of validating them again
-through :meth:`Stepper.vjp`.
+validated once, in the forward pass (the stepper's own checks of shape, dtype and finiteness,
+the parts of :meth:`Stepper.prepare`; the bridge adds only the torch-specific ones: device,
+contiguity), and both passes take the stepper's fast path (:meth:`Stepper.rollout_prepared`,
+:meth:`Stepper.vjp_prepared`), which does not check them again.
 
 The adjoint is once-differentiable: differentiating through the backward pass
 (``create_graph=True`` followed by a backward through the gradient, as in a gradient penalty,
@@ -93,19 +93,19 @@ def _forward(
     arrays never share memory with the caller's tensors: in-place edits after this call cannot
     change the gradient.
     """
-    u = stepper._check_state(u0, "u0")
-    c = stepper._check_controls(controls, n, u)
+    # Stepper.prepare minus its check of n, which the caller has made.
+    u = stepper.check_state(u0, "u0")
+    c = stepper.check_controls(controls, n, u)
     p = stepper.param_array(params, u.dtype)
     store = grad and checkpoint is None
-    # Zero steps or an empty batch call no kernel: the stepper's _run and _vjp see to that.
-    states = stepper._run(u, n, c, p, keep_all=keep_all or store)
-    stepper._raise_if_nonfinite(states, keep_all or store, u, c, p, n=n)
+    # Zero steps or an empty batch call no kernel: the stepper's fast path sees to that.
+    states = stepper.rollout_prepared(u, n, c, p, keep="all" if keep_all or store else "last")
     if keep_all:
         out = states.copy() if store else states
-    elif states.shape[0] == n + 1:
+    elif store:
         out = states[n]  # the backward pass reverses from u_0 .. u_{n-1} only: no copy needed
     else:
-        out = states[n % 2]  # the ping-pong buffer of an unstored rollout
+        out = states  # u_n, in the two-state buffer of an unstored rollout
     saved = None
     if grad:
         saved = _Saved(
@@ -132,11 +132,10 @@ def _backward(
     """Cotangents of (u0, controls, params) from the output's cotangent ``grad``."""
     stepper, n, u0, c, p, trajectory, checkpoint = saved
     cot = np.ascontiguousarray(grad)
-    # Stepper.vjp minus its validation (done in the forward pass); positional, as vjp calls it
-    # (subclasses wrap _vjp with *args).
-    g = stepper._vjp(
+    # The cotangents in the form check_cotangents gives, built directly: grad is the output's.
+    g = stepper.vjp_prepared(
         u0, n, c, p, cot if keep_all else cot[None], _cotangent_map(n, keep_all), want_params,
-        checkpoint, True, trajectory,
+        checkpoint, trajectory,
     )
     g_p = None
     if want_params:
@@ -164,11 +163,11 @@ def _once_differentiable(names: list[str], grads: tuple, sources: tuple) -> tupl
         return grads
     solver = ", ".join(sorted(set(names)))
     error = _torch_functions.DelayedError(
-        f"adjointsim.train.bridge ({solver}): the solver's backward pass is a hand-written discrete "
-        "adjoint and is once-differentiable; second derivatives through it (a backward pass "
-        "through a gradient taken with create_graph=True: gradient penalties, Hessian-vector "
-        "products, gradgradcheck) are not available. Use a first-order objective, or finite "
-        "differences of the gradient.",
+        f"adjointsim.train.bridge ({solver}): the solver's backward pass is a hand-written "
+        "discrete adjoint and is once-differentiable; second derivatives through it (a "
+        "backward pass through a gradient taken with create_graph=True: gradient penalties, "
+        "Hessian-vector products, gradgradcheck) are not available. Use a first-order "
+        "objective, or finite differences of the gradient.",
         len(tensors) + len(links),
     )
     wrapped = iter(error(*tensors, *links))

@@ -337,6 +337,7 @@ class NavierStokes2D(Stepper):
 
     order: ClassVar[int]
     complex_step = False
+    _records_tape = True
     #: smallest (even) n the kernels and the default state support
     min_points: ClassVar[int] = 4
     # ν, μ and Δt large enough that even a one-step rollout depends measurably on them: the
@@ -399,8 +400,6 @@ class NavierStokes2D(Stepper):
         self._dk = (dkx[:, 0], dky[0])
         self._inv_k2 = np.where(self.k2 > 0, 1.0 / np.where(self.k2 > 0, self.k2, 1.0), 0.0)
         self._tables: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-        self._recording = False
-        self._tape: tuple[np.ndarray, np.ndarray] | None = None
         self.check_params(np.array(self.param_values))
 
     # -------------------------------------------------------------- presets
@@ -489,7 +488,8 @@ class NavierStokes2D(Stepper):
             dc = etdrk_coefficient_derivatives(lin, self.dt, self.order) if deriv else None
             hit = tuple(t.astype(dtype) for t in etdrk_tableau(self.order, c, dc))
             if len(self._tables) >= 8:
-                self._tables.pop(next(iter(self._tables)))
+                # None: another thread may have evicted the same entry first.
+                self._tables.pop(next(iter(self._tables)), None)
             self._tables[key] = hit
         return hit
 
@@ -506,37 +506,28 @@ class NavierStokes2D(Stepper):
             -1 if kf is None else kf, real.type(fval),
         )
 
-    def _forward(self, states, n, ctrl, p):
-        tape = self._new_tape(states, n)
+    def _forward(self, states, n, ctrl, p, record=False):
+        tape = self._new_tape(states, n, record)
         ns_forward(states, n, ctrl, *self._args(p, states.dtype), tape)
-        if tape.shape[0]:
-            self._tape = (states, tape)
+        return tape if tape.shape[0] else None
 
-    def _new_tape(self, states: np.ndarray, n: int) -> np.ndarray:
-        """Room for every stage's (u, v, ω) when a vjp's forward sweep keeps the trajectory."""
+    def _new_tape(self, states: np.ndarray, n: int, record: bool) -> np.ndarray:
+        """Room for every stage's (u, v, ω) when asked to record, within ``TAPE_BYTES``; else
+        the empty tape, which the kernel takes for "record nothing"."""
         shape = (n, states.shape[1], self.order, 3, self.n, self.n)
-        record = (
-            self._recording and states.shape[0] == n + 1
-            and np.prod(shape) * states.dtype.itemsize <= TAPE_BYTES
-        )
+        record = record and np.prod(shape) * states.dtype.itemsize <= TAPE_BYTES
         return np.empty(shape if record else (0, 1, 1, 1, 1, 1), dtype=states.dtype)
 
-    def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
+    def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, tape=None):
         dt, a, b, kx, ky, inv_k2, keep, ncols, reuse, fmode, fval = self._args(p, ubar.dtype)
         if want_p:
             da, db = self._coefficients(p, ubar.dtype, True)
         else:
             da, db = a[:0], b[:0]
-        tape = np.empty((0, 1, 1, 1, 1, 1), dtype=ubar.dtype)
-        if self._tape is not None and not want_p:
-            recorded, full = self._tape
-            # Only a prefix of the recorded trajectory (same first state) matches the tape.
-            same = (
-                states.ctypes.data == recorded.ctypes.data and states.strides == recorded.strides
-                and states.shape[0] <= full.shape[0] and states.dtype == full.dtype
-            )
-            if same:
-                tape = full[: states.shape[0]]
+        if tape is None:
+            tape = np.empty((0, 1, 1, 1, 1, 1), dtype=ubar.dtype)
+        else:
+            tape = tape[: states.shape[0]]  # the steps from a prefix of the recorded states
         kf = self.forcing_wavenumber
         # p̄_a = Σ_i ⟨N̄_i, ∂N/∂a⟩_H = Σ_i (2/n²) Re N̄_i[0, k_f] · (−k_f n²/2).
         fbar = -float(kf) if kf is not None else 0.0
@@ -545,16 +536,6 @@ class NavierStokes2D(Stepper):
             inv_k2, keep, ncols, reuse, fmode, fval, fbar, self._pidx, self.k2,
             hermitian_weights(self.n), tape,
         )
-
-    def _vjp(self, u0, n, ctrl, p, cot, cmap, wrt_params, *args, **kwargs):
-        # The forward sweeps of a vjp record the stage fields, so the adjoint skips recomputing
-        # them (parameter cotangents also need the spectral stages: those recompute).
-        self._recording = not wrt_params
-        try:
-            return super()._vjp(u0, n, ctrl, p, cot, cmap, wrt_params, *args, **kwargs)
-        finally:
-            self._recording = False
-            self._tape = None
 
 
 @register

@@ -219,7 +219,7 @@ class Poisson2D(Stepper):
 
     def solve_adjoint(self, ubar: np.ndarray, params: dict[str, float] | None = None) -> np.ndarray:
         """f̄ = (−Δ_h + κ)⁻ᵀ ū, the transposed solve (equal to :meth:`solve`: A is symmetric)."""
-        ubar = self._check_state(ubar, "ubar")
+        ubar = self.check_state(ubar, "ubar")
         p = self.param_array(params, ubar.dtype)
         fbar = np.array(ubar, dtype=np.result_type(ubar, p))
         no_cot = np.zeros((0, *fbar.shape), fbar.dtype)

@@ -343,6 +343,7 @@ class ETDRKScene1D(Stepper):
     nonlinear: bool = True
     linear_params: tuple[str, ...]
     complex_step = False  # real FFTs cannot run complex arrays
+    _records_tape = True
     #: amplitude of :meth:`random_state`
     amplitude: float = 1.0
     #: smallest (even) n: below 4 only the mean and the Nyquist mode are left
@@ -387,10 +388,8 @@ class ETDRKScene1D(Stepper):
             self.param_values = (*params, amplitude)
         self.check_params(np.array(self.param_values))
         self._tableau = self._build_tableau()
-        self._recording = False
-        self._tape: tuple[np.ndarray, np.ndarray] | None = None
         self._args_cache: dict[tuple, tuple] = {}
-        self._tape_buffer: np.ndarray | None = None
+        # A tape buffer kept between vjp calls (see _new_tape) lives in "_tape_buffer".
 
     # ------------------------------------------------------------ to override
     def linear_basis(self) -> list[np.ndarray]:
@@ -451,11 +450,13 @@ class ETDRKScene1D(Stepper):
 
     def _kernel_args(self, p: np.ndarray, dtype: np.dtype) -> tuple:
         key = (np.asarray(p).tobytes(), np.dtype(dtype).str)
-        if key not in self._args_cache:
+        # One lookup: another thread may clear the cache between a test and a read.
+        hit = self._args_cache.get(key)
+        if hit is None:
             if len(self._args_cache) >= 8:
                 self._args_cache.clear()
-            self._args_cache[key] = self._make_kernel_args(p, dtype)
-        return self._args_cache[key]
+            hit = self._args_cache[key] = self._make_kernel_args(p, dtype)
+        return hit
 
     def _make_kernel_args(self, p: np.ndarray, dtype: np.dtype) -> tuple:
         cdt = np.result_type(dtype, np.complex64)
@@ -478,48 +479,46 @@ class ETDRKScene1D(Stepper):
             dconst, fft1d.plan(self.grid_shape[0], dtype), self.nonlinear,
         )
 
-    def _forward(self, states, n, ctrl, p):
+    def _forward(self, states, n, ctrl, p, record=False):
         args = self._kernel_args(p, states.dtype)
-        tape = self._new_tape(states, n)
+        tape = self._new_tape(states, n, record)
         etdrk_forward(states, n, ctrl, *args, tape)
-        if tape.shape[0]:
-            self._tape = (states, tape)
+        return tape if tape.shape[0] else None
 
-    def _new_tape(self, states: np.ndarray, n: int) -> np.ndarray:
+    def _new_tape(self, states: np.ndarray, n: int, record: bool) -> np.ndarray:
+        """Room for the stages when asked to record and the tape is worth it, within
+        ``TAPE_BYTES``; else the empty tape, which the kernel takes for "record nothing"."""
         nb, npts = states.shape[1], states.shape[3]
         shape = (n, self.substeps, len(self._tableau[0]), npts // 2 * nb)
         cdt = np.result_type(states.dtype, np.complex64)
         size = int(np.prod(shape))
         useful = self.order > 1 or self.substeps > 1  # else the stored states suffice
-        if not (self._recording and self.nonlinear and useful and states.shape[0] == n + 1
-                and size * cdt.itemsize <= TAPE_BYTES):
+        if not (record and self.nonlinear and useful and size * cdt.itemsize <= TAPE_BYTES):
             return np.empty((0, 1, 1, 1), dtype=cdt)
-        buffer = self._tape_buffer
+        # The kept buffer leaves the stepper while a tape uses it (_adjoint gives it back): a
+        # nested or concurrent vjp on this stepper records into a buffer of its own.
+        buffer = self.__dict__.pop("_tape_buffer", None)
         if buffer is None or buffer.dtype != cdt or buffer.size < size:
-            buffer = np.empty(size, dtype=cdt)
-            if size * cdt.itemsize <= TAPE_KEEP_BYTES:
+            if buffer is not None:
                 self._tape_buffer = buffer
+            buffer = np.empty(size, dtype=cdt)
         return buffer[:size].reshape(shape)
 
-    def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
+    def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, tape=None):
         dtype = ubar.dtype
         args = self._kernel_args(p, dtype)
-        tape = np.empty((0, 1, 1, 1), dtype=np.result_type(dtype, np.complex64))
-        if self._tape is not None and not want_p:
-            recorded, full = self._tape
-            # The tape fits only the very states it was recorded with, from the first on.
-            same = (
-                states.ctypes.data == recorded.ctypes.data and states.dtype == dtype
-                and states.strides == recorded.strides and states.shape[1:] == recorded.shape[1:]
-                and states.shape[0] <= full.shape[0]
-            )
-            if same:
-                tape = full[: states.shape[0]]
+        recorded = tape
+        if tape is None:
+            tape = np.empty((0, 1, 1, 1), dtype=np.result_type(dtype, np.complex64))
+        else:
+            tape = tape[: states.shape[0]]  # the steps from a prefix of the recorded states
         tgt, _, src, _, terms, kept = self._tableau
         chat = np.zeros((len(src), len(self.k)), dtype=np.complex128)
         fsum = np.zeros((len(tgt), len(self.k)), dtype=np.complex128)
         etdrk_adjoint(states.astype(dtype, copy=False), ctrl, cot, cmap, ubar, cbar, *args, tape,
                       want_p, chat, fsum)
+        if recorded is not None and recorded.base.nbytes <= TAPE_KEEP_BYTES:
+            self._tape_buffer = recorded.base  # no page faults for the next vjp's tape
         if want_p:
             self._parameter_cotangents(p, chat, fsum, pbar)
 
@@ -542,16 +541,6 @@ class ETDRKScene1D(Stepper):
                     pbar[-1] += np.sum(fbar * scale * table[key]).real
         for j, b in enumerate(self.basis):
             pbar[j] += np.sum(sens * b).real
-
-    def _vjp(self, u0, n, ctrl, p, cot, cmap, wrt_params, *rest):
-        # Record the stage tape in the forward sweeps of a vjp only, and not when parameter
-        # cotangents are wanted: they need the spectral stages, so the adjoint recomputes.
-        self._recording = not wrt_params
-        try:
-            return super()._vjp(u0, n, ctrl, p, cot, cmap, wrt_params, *rest)
-        finally:
-            self._recording = False
-            self._tape = None
 
 
 class BurgersETDRK(ETDRKScene1D):
