@@ -2,10 +2,11 @@
 
 import pytest
 import torch
-from adjointsim.nets.mlp import MLP
-from adjointsim.nets.taylor import jets, laplacian
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from adjointsim.nets.mlp import MLP
+from adjointsim.nets.taylor import jets, laplacian
 
 
 def _nested(model, x, v, order):

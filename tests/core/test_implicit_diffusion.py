@@ -1,17 +1,13 @@
 """Implicit diffusion (backward Euler, Crank–Nicolson / ADI): gradients, accuracy, invariants."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from numpy_ref.implicit_diffusion import ROLLOUTS  # noqa: E402
 
 import adjointsim.solvers.implicit_diffusion as implicit
 from adjointsim.check import check_stepper
 from adjointsim.grid import nodes
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from numpy_ref.implicit_diffusion import ROLLOUTS  # noqa: E402
 
 CLASSES = [
     implicit.BackwardEulerDiffusion1D,

@@ -12,7 +12,7 @@ from adjointsim.check import check_stepper
 from adjointsim.solvers.lax_wendroff import LaxWendroffAdvection1D, LaxWendroffAdvection2D
 from adjointsim.solvers.upwind import UpwindAdvection1D, UpwindAdvection2D
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CLASSES = [UpwindAdvection1D, UpwindAdvection2D, LaxWendroffAdvection1D, LaxWendroffAdvection2D]
 
 

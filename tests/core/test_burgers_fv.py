@@ -11,7 +11,7 @@ import pytest
 from adjointsim.check import check_stepper
 from adjointsim.solvers.burgers_fv import BurgersRusanov1D, BurgersRusanov2D
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _numpy_reference():

@@ -1,19 +1,15 @@
 """Pseudo-spectral ETDRK scenes (KS, Burgers, advection–diffusion): adjoints at non-default
 scenes, invariants, presets, bad input and agreement with the NumPy reference."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from numpy_ref.spectral1d import ROLLOUTS  # noqa: E402
 
 import adjointsim
 import adjointsim.solvers.kuramoto_sivashinsky as ks
 import adjointsim.solvers.spectral1d as sp
 from adjointsim.check import check_stepper
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from numpy_ref.spectral1d import ROLLOUTS  # noqa: E402
 
 N = 32
 X = 2 * np.pi * np.arange(N) / N

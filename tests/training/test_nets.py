@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+
 from adjointsim.nets import MLP, DilatedResNet, ResNet, UNet, parameter_count
 
 

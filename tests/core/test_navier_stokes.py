@@ -2,11 +2,10 @@
 non-default scenes, accuracy against analytic solutions, convergence orders, invariants,
 input validation, agreement with the NumPy reference."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from numpy_ref.spectral2d import ROLLOUTS  # noqa: E402
 
 import adjointsim.solvers.advection_diffusion2d  # noqa: F401
 import adjointsim.solvers.navier_stokes  # noqa: F401
@@ -15,9 +14,6 @@ from adjointsim.check import check_stepper
 from adjointsim.solvers.advection_diffusion2d import AdvectionDiffusion2D
 from adjointsim.solvers.navier_stokes import NavierStokes2D
 from adjointsim.spectral.fft2d import random_smooth_field
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from numpy_ref.spectral2d import ROLLOUTS  # noqa: E402
 
 ORDERS = (1, 2, 3, 4)
 

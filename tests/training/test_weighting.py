@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from adjointsim.train.weighting import Weighting
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from adjointsim.train.weighting import Weighting
 
 RES = torch.tensor([1.0, -1.0, 1.0, -1.0], dtype=torch.float64)  # std 1, max|.| 1
 

@@ -26,13 +26,6 @@ from adjointsim.train.trainer import (
 from adjointsim.train.unroll import unrolled_loss
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    path = tmp_path_factory.mktemp("data") / "ks-tiny.h5"
-    datamod.save(datamod.generate("ks", "tiny", seed=0, progress=False), path)
-    return path
-
-
 def _batch(path, m, dtype=torch.float64):
     split = datamod.load(path).splits["train"]
     frames = torch.from_numpy(split.trajectories[:4, : m + 1]).to(dtype)

@@ -16,7 +16,7 @@ from adjointsim.cli import main
 from adjointsim.stepper import Stepper
 
 FTCS = adjointsim.get("diffusion1d-ftcs")
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_unknown_solver_lists_the_registered_ones():
@@ -402,7 +402,7 @@ def test_cli_rejects_unknown_names(capsys):
 
 
 def test_ci_runs_the_readme_commands():
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     readme = (root / "README.md").read_text()
     ci = (root / ".ci" / "run").read_text()
     commands = [line for line in ci.splitlines() if line.startswith("python3 -m")]

@@ -3,8 +3,6 @@ ETDRK4 baseline, the PyTorch KS baseline (forward and autograd gradient against 
 exponax is installed, its twins of our scenes."""
 
 import csv
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,8 +21,6 @@ from adjointsim.bench.work_precision import (
     median_times,
     relative_error,
 )
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 
 @pytest.fixture(scope="module")

@@ -21,13 +21,6 @@ TINY = ["--setup", "prediction", "--width", "2", "--blocks", "1", "--unroll", "2
         "--batch", "4", "--stride", "8", "--epochs", "1"]
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    path = tmp_path_factory.mktemp("data") / "ks-tiny.h5"
-    datamod.save(datamod.generate("ks", "tiny", seed=0, progress=False), path)
-    return path
-
-
 def _run(capsys, *argv):
     code = main([str(a) for a in argv])
     out, err = capsys.readouterr()
