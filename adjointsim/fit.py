@@ -13,7 +13,8 @@ gradient of M is one adjoint sweep, :meth:`Stepper.vjp` with the cotangents 2(u_
 at the observed steps (``wrt_params=True`` when parameters are fitted, ``checkpoint=`` for long
 rollouts); R's is written out. Parameters are optimised in units of their starting magnitude
 (p = |p⁰| ζ) so that they and the state are of similar scale for the optimiser; bounds are given
-in the parameters' own units.
+in the parameters' own units. A start outside its bounds is refused: scipy would move it onto
+the bound, which changes the problem (and can end the fit there after 0 iterations).
 
 The optimiser is :func:`scipy.optimize.minimize`, L-BFGS-B by default (bounds for parameters);
 any of its gradient-based methods can be named. Everything runs in float64.
@@ -37,10 +38,26 @@ GRADIENT_METHODS = ("L-BFGS-B", "BFGS", "CG", "TNC", "SLSQP", "trust-constr", "N
 #: of these, the ones that take bounds
 BOUNDED_METHODS = ("L-BFGS-B", "TNC", "SLSQP", "trust-constr")
 BLOCKS = ("state", "controls", "params")
+#: a parameter within this much of a bound, relative to the larger of the bound's and the start's
+#: magnitude, sits on it (interior-point methods such as trust-constr stop ~1e-5 short of it)
+ACTIVE_RTOL = 1e-4
+ACCEPTED_BOUNDS = "accepted: (lo, hi), each a real number or None (no bound), lo ≤ hi"
 
 
 class FitError(ValueError):
     """The fit cannot go on (a non-finite misfit, parameters beyond a stability limit)."""
+
+
+class StartOutsideBoundsError(ValueError):
+    """A fitted parameter's start lies outside its bounds (``name``, ``start``, ``bounds`` as
+    given), so that a caller can say how to fix it in its own terms."""
+
+    def __init__(self, name: str, start: float, bounds: tuple) -> None:
+        self.name, self.start, self.bounds = name, start, bounds
+        super().__init__(
+            f"the start of {name} ({start}) is outside its bounds {_show_bounds(bounds)}; pass "
+            f"a start inside them (params={{'{name}': ...}}) or wider bounds: a start moved "
+            "onto a bound would change the problem")
 
 
 @dataclass
@@ -52,6 +69,9 @@ class FitResult:
     fitted rollout's state there. ``history`` has one row per iteration (iteration 0 is the
     start): misfit, regularisation, objective, gradient norm (of the objective in the
     optimiser's variables), evaluations so far, seconds and CPU seconds of this process.
+    ``start_active_bounds`` and ``active_bounds`` map the fitted parameters on one of their
+    bounds (within :data:`ACTIVE_RTOL`) at the start and at the end to ``"lower"`` or
+    ``"upper"``.
     """
 
     state: np.ndarray
@@ -66,6 +86,8 @@ class FitResult:
     evaluations: int
     seconds: float
     wrt: tuple[str, ...] = field(default=())
+    start_active_bounds: dict[str, str] = field(default_factory=dict)
+    active_bounds: dict[str, str] = field(default_factory=dict)
 
 
 def parse_wrt(stepper: Stepper, wrt: str | Sequence[str]) -> tuple[bool, bool, tuple[str, ...]]:
@@ -127,6 +149,49 @@ def check_observations(
     return n, dict(sorted(obs.items()))
 
 
+def _show_bounds(bounds: tuple) -> str:
+    return "(" + ", ".join("None" if b is None else str(b) for b in bounds) + ")"
+
+
+def check_bounds(
+    bounds: Mapping[str, Any], fit_names: Sequence[str], start: Mapping[str, float]
+) -> dict[str, tuple[float | None, float | None]]:
+    """``bounds`` ({parameter: (lo, hi)}) checked: fitted parameters only, real numbers or None,
+    no NaN, lo ≤ hi, each start inside (else :class:`StartOutsideBoundsError`); returned as
+    floats, an infinite side as None."""
+    out: dict[str, tuple[float | None, float | None]] = {}
+    for name, given in bounds.items():
+        if name not in start:
+            raise ValueError(f"bounds name {name}, which is not a parameter (the parameters: "
+                             f"{', '.join(start) or '(none)'}); drop its bounds")
+        if name not in fit_names:
+            raise ValueError(f"bounds name {name}, which is not fitted: bounds are accepted for "
+                             f"the fitted parameters {', '.join(fit_names) or '(none)'}; fit "
+                             f"{name} (wrt) or drop its bounds")
+        numbers = isinstance(given, tuple | list) and len(given) == 2 and all(
+            b is None or (isinstance(b, int | float | np.integer | np.floating)
+                          and not isinstance(b, bool)) for b in given)
+        if not numbers:
+            raise ValueError(f"bounds of {name} {given!r} are not a pair of numbers or None; "
+                             f"{ACCEPTED_BOUNDS}")
+        lo, hi = (None if b is None else float(b) for b in given)
+        shown = _show_bounds(tuple(given))
+        if any(b is not None and math.isnan(b) for b in (lo, hi)):
+            raise ValueError(f"bounds of {name} {shown} have a NaN; {ACCEPTED_BOUNDS}")
+        if lo == math.inf or hi == -math.inf:
+            raise ValueError(f"bounds of {name} {shown} exclude every value; {ACCEPTED_BOUNDS}")
+        if lo is not None and hi is not None and lo > hi:
+            raise ValueError(f"bounds of {name} {shown} are reversed: lo {given[0]} > hi "
+                             f"{given[1]}; {ACCEPTED_BOUNDS}")
+        lo = None if lo == -math.inf else lo
+        hi = None if hi == math.inf else hi
+        p = start[name]
+        if (lo is not None and p < lo) or (hi is not None and p > hi):
+            raise StartOutsideBoundsError(name, p, tuple(given))
+        out[name] = (lo, hi)
+    return out
+
+
 def _smooth_grad(a: np.ndarray, axes: Sequence[int]) -> tuple[float, np.ndarray]:
     """Σ_axes mean((D a)²) and its gradient (D the forward difference along each axis)."""
     value, grad = 0.0, np.zeros_like(a)
@@ -154,7 +219,8 @@ class FitProblem:
     scene's limits, once the start has been evaluated); ``unpack(z)`` gives (state, controls,
     params); ``last`` holds the misfit, regularisation and gradient norm of the last admissible
     call and the evaluation count; ``bounds`` the scipy bounds; ``predict(z)`` the states at the
-    observed steps.
+    observed steps; ``active_bounds(params)`` the fitted parameters on a bound (see
+    :class:`FitResult`).
     """
 
     z0: np.ndarray
@@ -166,6 +232,7 @@ class FitProblem:
     observations: dict[int, np.ndarray]
     n: int
     wrt: tuple[str, ...]
+    active_bounds: Callable[[Mapping[str, float]], dict[str, str]]
 
 
 def problem(
@@ -218,11 +285,7 @@ def problem(
                              f"are {list(stepper.param_names)}")
         p0.update({k: float(v) for k, v in params.items()})
     stepper.param_array(p0, np.float64)  # finite and within the scheme's limits
-    bounds = dict(bounds or {})
-    unknown = sorted(set(bounds) - set(fit_names))
-    if unknown:
-        raise ValueError(f"bounds for parameter(s) {unknown} that are not fitted "
-                         f"(fitted: {list(fit_names)})")
+    bounds = check_bounds(bounds or {}, fit_names, p0)
     if bounds and method not in BOUNDED_METHODS:
         raise ValueError(f"method {method} takes no bounds; use one of "
                          f"{', '.join(BOUNDED_METHODS)} or drop the bounds")
@@ -330,8 +393,20 @@ def problem(
             scipy_bounds.append((None if lo is None else lo / s, None if hi is None else hi / s))
     wrt_names = (*(("state",) if fit_state else ()), *(("controls",) if fit_controls else ()),
                  *fit_names)
+
+    def active_bounds(values: Mapping[str, float]) -> dict[str, str]:
+        out = {}
+        for k, (lo, hi) in bounds.items():
+            p = values[k]
+            near = [(abs(p - b), side) for side, b in (("lower", lo), ("upper", hi))
+                    if b is not None and abs(p - b) <= ACTIVE_RTOL * max(abs(b), abs(p0[k]))]
+            if near:
+                out[k] = min(near)[1]
+        return out
+
     return FitProblem(z0=z0, objective=objective, unpack=unpack, predict=predict, last=last,
-                      bounds=scipy_bounds, observations=obs, n=n, wrt=wrt_names)
+                      bounds=scipy_bounds, observations=obs, n=n, wrt=wrt_names,
+                      active_bounds=active_bounds)
 
 
 def fit(
@@ -351,11 +426,12 @@ def fit(
     ``wrt`` (what to fit, see :func:`parse_wrt`), ``u0``, ``controls``, ``params`` (the starting
     guesses of the fitted blocks and the fixed values of the others; defaults: a zero state,
     zero controls when fitted, none otherwise, the scene's parameters), ``bounds``
-    ({parameter: (lo, hi)}, either side None), ``tikhonov`` and ``smoothness`` (λ_T, λ_S, module
+    ({parameter: (lo, hi)}, either side None; a start outside them is refused with
+    :class:`StartOutsideBoundsError`), ``tikhonov`` and ``smoothness`` (λ_T, λ_S, module
     doc), ``checkpoint`` (for the vjp). ``method``, ``tol`` and ``options`` go to
     :func:`scipy.optimize.minimize` (``maxiter`` is put in ``options``; for TNC, which has no
     iteration limit, as ``maxfun``, a limit on evaluations). ``callback`` gets each
-    iteration's history row.
+    iteration's history row. A fit that stops after 0 iterations says why in its message.
     """
     if isinstance(maxiter, bool) or int(maxiter) != maxiter or maxiter < 0:
         raise ValueError(f"maxiter must be an integer ≥ 0, not {maxiter!r}")
@@ -385,6 +461,13 @@ def fit(
                        options=opts, callback=lambda zk, *rest: record(np.asarray(zk)))
         z, success, message = res.x, bool(res.success), str(res.message)
         nit = int(getattr(res, "nit", len(history) - 1))
+    start_active = prob.active_bounds(prob.unpack(z0)[2])
+    if nit == 0 and maxiter > 0:
+        why = ("the stopping test already holds at the start" if success
+               else "no step improved on the start")
+        on = "; on a bound at the start: " + ", ".join(
+            f"{k} ({side})" for k, side in start_active.items()) if start_active else ""
+        message += f"; 0 iterations: {why} (gradient norm {history[0]['grad_norm']:.3g}{on})"
     u, c, p = prob.unpack(z)
     pred = prob.predict(z)
     obs = prob.observations
@@ -394,5 +477,6 @@ def fit(
         state=u.copy(), controls=None if c is None else c.copy(), params=p, misfit=misfit,
         predicted={k: v.copy() for k, v in pred.items()}, history=history, success=success,
         message=message, iterations=nit, evaluations=last["evaluations"],
-        seconds=time.perf_counter() - t_start, wrt=prob.wrt,
+        seconds=time.perf_counter() - t_start, wrt=prob.wrt, start_active_bounds=start_active,
+        active_bounds=prob.active_bounds(p),
     )

@@ -21,7 +21,9 @@ regularisation, objective, gradient norm, evaluations, seconds, CPU seconds), ``
 (fitted u0, controls and the predicted observed states, same layout), the plots ``fit.png``
 (fitted against observed states) and ``history.png`` (misfit and gradient norm per iteration),
 and last ``result.json`` (fitted parameters, misfit, errors against the truth when the file has
-it, optimiser message). All files are written atomically.
+it, optimiser message, the parameters on a bound at the start and at the end). All files are
+written atomically. A start outside its bounds is refused (give ``--start`` or wider
+``--bounds``); a demo's own bounds apply to the parameters it fits.
 
 Every input is checked before anything is written. A fit takes seconds, so it keeps no
 checkpoint: ``--resume`` returns a finished fit's result as it is and starts an unfinished
@@ -46,7 +48,7 @@ import numpy as np
 from . import registry
 from .errors import UserError
 from .files import atomic_path, pyplot, save_figure, write_json
-from .fit import GRADIENT_METHODS, FitResult, fit, problem
+from .fit import GRADIENT_METHODS, FitResult, StartOutsideBoundsError, fit, parse_wrt, problem
 from .run import (
     SEEDS,
     Config,
@@ -278,13 +280,18 @@ class FitConfig(Config):
             if not sep:
                 raise UserError(f"config key 'bounds'{where}: takes NAME=LO:HI (either side "
                                 f"may be empty), not {key}={value}")
-            out[key] = (None if not lo else _number(lo, f"bounds {key}", where),
-                        None if not hi else _number(hi, f"bounds {key}", where))
+            takes = "takes NAME=LO:HI, LO ≤ HI finite numbers (either may be empty)"
+            lo, hi = (None if not v else _number(v, f"bounds {key}", where, takes)
+                      for v in (lo, hi))
+            if lo is not None and hi is not None and lo > hi:
+                raise UserError(f"config key 'bounds'{where}: bounds {key}={value} are reversed "
+                                f"({lo} > {hi}); {takes}")
+            out[key] = (lo, hi)
         return out
 
     def start_values(self, where: str = "") -> dict[str, float]:
         """``start`` as {parameter: value}."""
-        return {k: _number(v, f"start {k}", where)
+        return {k: _number(v, f"start {k}", where, "takes NAME=VALUE, VALUE a finite number")
                 for k, v in _pairs(self.start, "start", "NAME=VALUE", where).items()}
 
 
@@ -298,13 +305,13 @@ def _pairs(items: list, key: str, form: str, where: str) -> dict[str, str]:
     return out
 
 
-def _number(text: str, what: str, where: str) -> float:
+def _number(text: str, what: str, where: str, takes: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise UserError(f"config key {what}{where}: {text!r} is not a number") from None
+        raise UserError(f"config key {what}{where}: {text!r} is not a number; {takes}") from None
     if not math.isfinite(v):
-        raise UserError(f"config key {what}{where}: {text!r} must be finite")
+        raise UserError(f"config key {what}{where}: {text!r} is not a finite number; {takes}")
     return v
 
 
@@ -380,15 +387,26 @@ def run_fit(cfg: FitConfig, out: str | Path, resume: bool = False, overwrite: bo
             else demo_observations(prob))
     scene = make_scene(data["scene"], data["config"])
     obs = {int(k): s for k, s in zip(data["steps"], data["states"])}
+    wrt = cfg.wrt or ("state" if prob is None else prob["wrt"])
+    bounds = cfg.bound_values()
+    if not bounds and prob is not None:  # a demo's own bounds, on what is fitted
+        fitted = parse_wrt(scene, wrt)[2]
+        bounds = {k: b for k, b in prob.get("bounds", {}).items() if k in fitted}
     given = {
         "n": data["n"] if cfg.steps is None else cfg.steps,  # steps = 0 is a length too
-        "wrt": cfg.wrt or ("state" if prob is None else prob["wrt"]),
-        "u0": data["u0"], "controls": data["controls"],
-        "params": {**data["params"], **cfg.start_values()},
-        "bounds": cfg.bound_values() or ({} if prob is None else prob.get("bounds", {})),
+        "wrt": wrt, "u0": data["u0"], "controls": data["controls"],
+        "params": {**data["params"], **cfg.start_values()}, "bounds": bounds,
         "method": cfg.method, "tikhonov": cfg.tikhonov, "smoothness": cfg.smoothness,
         "checkpoint": cfg.checkpoint}
-    problem(scene, obs, **given)  # every input checked before anything is written
+    try:
+        problem(scene, obs, **given)  # every input checked before anything is written
+    except StartOutsideBoundsError as e:
+        lo, hi = ("" if b is None else b for b in e.bounds)
+        whose = "" if cfg.bounds else " (the demo's)"
+        raise UserError(f"the start of {e.name} ({e.start}) is outside its bounds "
+                        f"{e.name}={lo}:{hi}{whose}; give a start inside them with --start "
+                        f"{e.name}=VALUE, or wider --bounds {e.name}=LO:HI (a start moved onto "
+                        "a bound would change the problem)") from None
     if overwrite:
         discard(out, RUN_FILES)
         refuse_foreign(out, config)
@@ -418,6 +436,7 @@ def run_fit(cfg: FitConfig, out: str | Path, resume: bool = False, overwrite: bo
         "start_misfit": result.history[0]["misfit"], "params": result.params,
         "iterations": result.iterations, "evaluations": result.evaluations,
         "seconds": result.seconds, "success": result.success, "message": result.message,
+        "start_active_bounds": result.start_active_bounds, "active_bounds": result.active_bounds,
     }
     if data["truth_params"]:
         summary["param_rel_error"] = {

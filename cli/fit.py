@@ -53,8 +53,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
     keys.add_argument("--checkpoint", type=at_least(1), default=None,
                       help="states held by the adjoint sweep (default all)")
     keys.add_argument("--bounds", action="append", default=None, metavar="NAME=LO:HI",
-                      help="bounds of a fitted parameter, either side may be empty (repeat for "
-                      "several; default: a demo's own)")
+                      help="bounds of a fitted parameter, either side may be empty, its start "
+                      "inside them (repeat for several; default: a demo's own)")
     keys.add_argument("--start", action="append", default=None, metavar="NAME=VALUE",
                       help="starting (or fixed) value of a parameter (repeat for several)")
 
@@ -72,6 +72,10 @@ def run(args: argparse.Namespace) -> int:
     extra = "".join(f", {k} = {v:.3g}" for k, v in summary.items()
                     if k == "u0_mse") + "".join(
         f", rel. error of {k} {v:.2g}" for k, v in summary.get("param_rel_error", {}).items())
+    # a result.json of a fit finished before active bounds were reported has none
+    active = summary.get("active_bounds", {})
+    if active:
+        extra += "; on a bound at the end: " + ", ".join(f"{k} ({v})" for k, v in active.items())
     print(f"{summary['scene']}: misfit {summary['start_misfit']:.3g} -> {summary['misfit']:.3g} "
           f"in {summary['iterations']} iterations, {summary['seconds']:.2f} s{extra}; "
           f"{summary['message']}; run in {out}/")

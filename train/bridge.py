@@ -7,10 +7,16 @@ stores nothing; otherwise it keeps the trajectory, or only checkpoints when ``ch
 set, so that the backward pass does not recompute it.
 
 A closed loop calls the solver once per step, so the per-call cost matters: the inputs are
-validated once, in the forward pass (the stepper's own checks of shape, dtype and finiteness,
-the parts of :meth:`Stepper.prepare`; the bridge adds only the torch-specific ones: device,
-contiguity), and both passes take the stepper's fast path (:meth:`Stepper.rollout_prepared`,
-:meth:`Stepper.vjp_prepared`), which does not check them again.
+validated once, in the forward call (the stepper's own checks of shape, dtype and finiteness,
+the parts of :meth:`Stepper.prepare`; the bridge adds only the torch-specific ones: type,
+device, contiguity), and both passes take the stepper's fast path
+(:meth:`Stepper.rollout_prepared`, :meth:`Stepper.vjp_prepared`), which does not check them
+again. Everything is checked before the rollout runs, ``checkpoint`` included (which the stepper
+would check only when the backward pass starts), whether or not a backward pass follows.
+
+States, controls and parameters are tensors or NumPy arrays (NumPy in, tensor out: an array is
+taken as :meth:`Stepper.rollout` takes it, without a copy when it is C-contiguous, and gets no
+gradient); anything else (a list, a float) is refused with a ``TypeError`` naming the input.
 
 The adjoint is once-differentiable: differentiating through the backward pass
 (``create_graph=True`` followed by a backward through the gradient, as in a gradient penalty,
@@ -22,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import numbers
+import warnings
 from typing import NamedTuple
 
 import numpy as np
@@ -29,6 +36,7 @@ import torch
 from torch._C import _functions as _torch_functions
 
 from adjointsim import Stepper
+from adjointsim.stepper import FLOAT_DTYPES
 
 #: counts adjoint sweeps, so tests can prove that a training mode never ran one
 ADJOINT_CALLS = {"count": 0}
@@ -63,6 +71,22 @@ def _check_steps(n: object) -> int:
             f"({type(n).__name__})"
         )
     return int(n)
+
+
+def check_checkpoint(stepper: Stepper, checkpoint: int | None) -> int | None:
+    """``checkpoint``, after the check :meth:`Stepper.vjp` makes of it, with its message.
+
+    The stepper checks it only in :meth:`Stepper.vjp_prepared`, as the reverse sweep starts:
+    through the bridge, after the whole rollout, or never under ``torch.no_grad()``. A sweep of
+    zero steps over an empty batch makes that check and calls no kernel, so it is checked here
+    before anything runs, in the stepper's words."""
+    if checkpoint is not None:
+        u = np.zeros(stepper.state_shape(0))
+        controls = np.zeros((0, 0, *(stepper.control_shape or ())))
+        params = np.zeros(len(stepper.param_names))
+        cmap = np.zeros(1, dtype=np.int64)
+        stepper.vjp_prepared(u, 0, controls, params, u[None], cmap, checkpoint=checkpoint)
+    return checkpoint
 
 
 class _Saved(NamedTuple):
@@ -174,12 +198,49 @@ def _once_differentiable(names: list[str], grads: tuple, sources: tuple) -> tupl
     return tuple(None if g is None else next(wrapped) for g in grads)
 
 
-def _no_tape(*tensors: torch.Tensor | None) -> tuple:
-    """The inputs, detached under ``torch.no_grad()``: a Function's forward sees its inputs'
-    ``requires_grad`` in ``ctx.needs_input_grad`` even then, and would store the trajectory."""
-    if torch.is_grad_enabled():
-        return tensors
-    return tuple(None if t is None else t.detach() for t in tensors)
+def _from_numpy(x: object, what: str) -> torch.Tensor:
+    """A NumPy array as a tensor sharing its memory (a copy only where the stepper would make
+    one: a layout other than C order); any other type refused, naming the input ``what``."""
+    if not isinstance(x, np.ndarray):
+        kind = "None" if x is None else f"a {type(x).__name__}"
+        raise TypeError(f"{what} is {kind}; pass a torch.Tensor or a NumPy array")
+    if x.dtype not in FLOAT_DTYPES:
+        raise TypeError(
+            f"{what} is a NumPy array of dtype {x.dtype}; expected float32 or float64 "
+            f"(convert with {what}.astype(np.float64))"
+        )
+    if not x.flags.c_contiguous:
+        x = x.copy(order="C")
+    if x.flags.writeable:
+        return torch.from_numpy(x)
+    # torch warns that a tensor cannot protect a read-only array; the bridge never writes to its
+    # inputs, and the tensor does not leave it.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.from_numpy(x)
+
+
+def _torch_inputs(names: tuple[str, ...], *inputs: object) -> tuple:
+    """The inputs as tensors (the first, the state, required; the others may be None), detached
+    under ``torch.no_grad()``: a Function's forward sees its inputs' ``requires_grad`` in
+    ``ctx.needs_input_grad`` even then, and would store the trajectory."""
+    if inputs[0] is not None:
+        for x in inputs:
+            if x is not None and not isinstance(x, torch.Tensor):
+                break
+        else:  # tensors only, a closed loop's every step: nothing to convert
+            if torch.is_grad_enabled():
+                return inputs
+            return tuple(None if x is None else x.detach() for x in inputs)
+    converted = [
+        x if isinstance(x, torch.Tensor) or (x is None and i) else _from_numpy(x, names[i])
+        for i, x in enumerate(inputs)
+    ]
+    return _torch_inputs(names, *converted)
+
+
+_ROLLOUT_INPUTS = ("u0", "controls", "params")
+_STEP_INPUTS = ("u", "control", "params")
 
 
 class _Config(NamedTuple):
@@ -294,7 +355,7 @@ class _GroupedRollout(torch.autograd.Function):
 
 
 def rollout_grouped(
-    groups: list[tuple[Stepper, np.ndarray | slice]], u0: torch.Tensor, n: int
+    groups: list[tuple[Stepper, np.ndarray | slice]], u0: torch.Tensor | np.ndarray, n: int
 ) -> torch.Tensor:
     """Differentiable rollout of a batch whose rows belong to different scenes.
 
@@ -302,37 +363,44 @@ def rollout_grouped(
     a boolean mask; together a partition of the batch, checked), e.g. one KS domain size each.
     It is one autograd node whatever the number of groups: a batch mixing six scenes pays
     torch's per-node cost once, not six times, and needs no gather or scatter in torch.
+    ``u0`` is a tensor or a NumPy array (see the module docstring); the result is a tensor.
     """
-    return _GroupedRollout.apply(groups, _check_steps(n), *_no_tape(u0))
+    return _GroupedRollout.apply(groups, _check_steps(n), *_torch_inputs(("u0",), u0))
 
 
 def rollout(
     stepper: Stepper,
-    u0: torch.Tensor,
+    u0: torch.Tensor | np.ndarray,
     n: int,
-    controls: torch.Tensor | None = None,
-    params: torch.Tensor | None = None,
+    controls: torch.Tensor | np.ndarray | None = None,
+    params: torch.Tensor | np.ndarray | None = None,
     keep: str = "last",
     checkpoint: int | None = None,
 ) -> torch.Tensor:
     """Differentiable ``stepper.rollout``: gradients reach ``u0``, ``controls`` and ``params``.
 
-    ``params`` is a 1-D tensor in ``stepper.param_names`` order (e.g. a learnable viscosity);
-    None uses the scene's values. ``keep="all"`` returns u_0 .. u_n; ``checkpoint`` bounds the
-    number of states held for the backward pass (see :meth:`Stepper.vjp`). ``n = 0`` returns
+    ``params`` is 1-D, in ``stepper.param_names`` order (e.g. a learnable viscosity); None
+    uses the scene's values. Each input is a tensor or a NumPy array (an array gets no
+    gradient; see the module docstring); the result is a tensor. ``keep="all"`` returns
+    u_0 .. u_n; ``checkpoint`` bounds the number of states held for the backward pass (see
+    :meth:`Stepper.vjp`), checked here even when no backward pass follows. ``n = 0`` returns
     a copy of ``u0`` (shape (1, B, ...) with ``keep="all"``).
     """
     if keep not in ("last", "all"):
         raise ValueError(f"keep must be 'last' or 'all', not {keep!r}")
-    cfg = _Config(stepper, _check_steps(n), keep == "all", checkpoint, False)
-    return _Rollout.apply(cfg, *_no_tape(u0, controls, params))
+    n, checkpoint = _check_steps(n), check_checkpoint(stepper, checkpoint)
+    cfg = _Config(stepper, n, keep == "all", checkpoint, False)
+    return _Rollout.apply(cfg, *_torch_inputs(_ROLLOUT_INPUTS, u0, controls, params))
 
 
 def step(
     stepper: Stepper,
-    u: torch.Tensor,
-    control: torch.Tensor | None = None,
-    params: torch.Tensor | None = None,
+    u: torch.Tensor | np.ndarray,
+    control: torch.Tensor | np.ndarray | None = None,
+    params: torch.Tensor | np.ndarray | None = None,
 ) -> torch.Tensor:
-    """Differentiable single step; ``control`` has shape (B, *control_shape)."""
-    return _Rollout.apply(_Config(stepper, 1, False, None, True), *_no_tape(u, control, params))
+    """Differentiable single step; ``control`` has shape (B, *control_shape). Tensors or NumPy
+    arrays in (see :func:`rollout`), a tensor out."""
+    return _Rollout.apply(
+        _Config(stepper, 1, False, None, True), *_torch_inputs(_STEP_INPUTS, u, control, params)
+    )

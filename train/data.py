@@ -7,7 +7,10 @@ an interrupted run never leaves a half-written dataset behind.
 
 Every dataset in the file carries HDF5's Fletcher-32 checksum (format version 2), verified by
 HDF5 on every read: a flipped bit is reported as a damaged file with the command that
-regenerates it. Files of format version 1 (no checksums) still load, with a warning.
+regenerates it. Files of format version 1 (no checksums) still load, with a warning. A file
+rewritten through h5py passes its checksums, so the metadata are cross-checked too: the
+attributes against each other and this version's problems, and each split's arrays against what
+the ``config`` attribute generates.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from tqdm.auto import tqdm
 from adjointsim.errors import DamagedFileError, UserError
 from adjointsim.files import atomic_path
 
-from .problems import Problem, get_problem
+from .problems import PROBLEMS, Problem, get_problem
 
 #: 2: every dataset has a Fletcher-32 checksum; 1: none (loaded with a warning)
 FORMAT_VERSION = 2
@@ -119,36 +122,30 @@ ARRAYS = ("trajectories", "params", "conditions")
 
 
 def load(path: str | Path) -> Dataset:
-    """Read and validate a dataset file; a damaged file gets an error that says what to do."""
+    """Read and validate a dataset file; a damaged file gets an error that says what to do.
+
+    Beyond the checksums, which catch damage on disk but not a file rewritten through h5py, the
+    attributes are checked against each other and the arrays against the ``config`` attribute:
+    every split must hold the trajectories, parameters and conditions that config generates."""
     path = Path(path)
-    fix = f"delete it and regenerate it with `adjointsim data PROBLEM --out {path}`"
     if not path.exists():
-        raise FileNotFoundError(f"no dataset at {path}; create it with `adjointsim data PROBLEM`")
+        raise FileNotFoundError(f"no dataset at {path}; create it with {_command(path)}")
+    fix = _regenerate(path)
     try:
         with h5py.File(path, "r") as f:
-            version = f.attrs.get("format_version")
-            if version not in (1, FORMAT_VERSION):
-                raise UserError(
-                    f"{path} has format version {version}, expected {FORMAT_VERSION}; {fix}"
-                )
-            problem = get_problem(str(f.attrs["problem"]))
-            size = str(f.attrs["size"])
-            seed = int(f.attrs["seed"])
-            seed_flag = f" --seed {seed}" if seed else ""
-            fix = (f"delete it and regenerate it with `adjointsim data {problem.name} --size "
-                   f"{size}{seed_flag} --out {path}`")
-            if json.loads(f.attrs["config"]) != _scene_config(problem, size):
-                raise UserError(
-                    f"{path} was made with another configuration of the {problem.name!r} "
-                    f"problem than this version's; {fix}"
-                )
+            version, problem, size, seed, config = _metadata(f, path)
+            fix = _regenerate(path, problem.name, size, seed)
             if version == 1:
                 warnings.warn(f"{path} predates checksums (format version 1), so damage to it "
                               f"cannot be detected; to get them, {fix}", stacklevel=2)
             splits = {}
             for name in problem.splits:
+                if name not in f:
+                    raise DamagedFileError(f"{path} has no split {name!r}; {fix}")
                 arrays = []
                 for key in ARRAYS:
+                    if key not in f[name]:
+                        raise DamagedFileError(f"{path} has no {name}/{key}; {fix}")
                     d = f[name][key]
                     if version == FORMAT_VERSION and not d.fletcher32:
                         raise DamagedFileError(f"{path}: {name}/{key} has no checksum; {fix}")
@@ -160,9 +157,7 @@ def load(path: str | Path) -> Dataset:
                             f"its contents (a flipped bit on disk or an edited file); {fix}"
                         ) from None
                 split = Split(*arrays)
-                s = split.trajectories.shape[0]
-                if split.params.shape != (s,) or split.conditions.shape != (s,):
-                    raise DamagedFileError(f"{path}: split {name!r} has inconsistent shapes; {fix}")
+                _check_split(path, name, split, problem, config, fix)
                 if not np.all(np.isfinite(split.trajectories)):
                     raise DamagedFileError(f"{path}: split {name!r} holds non-finite values; {fix}")
                 splits[name] = split
@@ -171,6 +166,137 @@ def load(path: str | Path) -> Dataset:
         raise DamagedFileError(
             f"{path} is not a readable adjointsim dataset ({e}); {fix}"
         ) from None
+
+
+def _command(path: Path, problem: str = "PROBLEM", size: str = "SIZE", seed: int | str = 0) -> str:
+    """The command that writes the dataset ``path``; placeholders for what is not known."""
+    seed_flag = f" --seed {seed}" if seed else ""
+    return f"`adjointsim data {problem} --size {size}{seed_flag} --out {path}`"
+
+
+def _regenerate(path: Path, problem: str = "PROBLEM", size: str = "SIZE",
+                seed: int | str = 0) -> str:
+    fix = f"delete it and regenerate it with {_command(path, problem, size, seed)}"
+    return fix + (" (N: the seed it was made with)" if seed == "N" else "")
+
+
+def _show(value: object) -> str:
+    """An attribute's value as a user reads it (h5py gives NumPy scalars)."""
+    return repr(value.item() if isinstance(value, np.generic) else value)
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _attribute(f: h5py.File, key: str, path: Path, fix: str, kind: type) -> object:
+    if key not in f.attrs:
+        raise DamagedFileError(f"{path} has no `{key}` attribute; {fix}")
+    value = f.attrs[key]
+    if not isinstance(value, kind):
+        raise DamagedFileError(
+            f"{path}: its `{key}` attribute is {_show(value)}, not a {kind.__name__}; {fix}"
+        )
+    return value
+
+
+def _made_with(config: object) -> tuple[str, str] | None:
+    """The (problem, size) whose configuration ``config`` is in this version, if any."""
+    for problem in PROBLEMS.values():
+        for size in problem.sizes:
+            if config == _scene_config(problem, size):
+                return problem.name, size
+    return None
+
+
+def _metadata(f: h5py.File, path: Path) -> tuple[int, Problem, str, int, dict]:
+    """The format version, problem, size, seed and configuration a dataset file's attributes
+    name, after checking them against each other and against this version's problems."""
+    fix = _regenerate(path)
+    version = f.attrs.get("format_version")
+    if not _is_integer(version) or version not in (1, FORMAT_VERSION):
+        raise UserError(
+            f"{path} has format version {_show(version)}, expected {FORMAT_VERSION}; {fix}"
+        )
+    name = _attribute(f, "problem", path, fix, str)
+    size = _attribute(f, "size", path, fix, str)
+    # What the regenerating command can name: only a problem and size it accepts.
+    which = (
+        name if name in PROBLEMS else "PROBLEM",
+        size if name in PROBLEMS and size in PROBLEMS[name].sizes else "SIZE",
+    )
+    fix = _regenerate(path, *which)
+    if "seed" not in f.attrs:
+        raise DamagedFileError(f"{path} has no `seed` attribute; {fix}")
+    seed = f.attrs["seed"]
+    if not _is_integer(seed) or seed < 0:
+        raise DamagedFileError(
+            f"{path}: its `seed` attribute is {_show(seed)}, not an integer ≥ 0; "
+            f"{_regenerate(path, *which, 'N')}"
+        )
+    seed = int(seed)
+    fix = _regenerate(path, *which, seed)
+    text = _attribute(f, "config", path, fix, str)
+    try:
+        config = json.loads(text)
+    except ValueError as e:
+        raise DamagedFileError(f"{path}: its `config` attribute is not JSON ({e}); {fix}") from None
+    made = _made_with(config)
+    if made is not None and made != (name, size):
+        edited = " and ".join(
+            f"its `{key}` attribute is {value!r}"
+            for key, value, original in (("problem", name, made[0]), ("size", size, made[1]))
+            if value != original
+        )
+        raise DamagedFileError(
+            f"{path}: {edited} but its `config` attribute is that of the {made[0]!r} problem at "
+            f"size {made[1]!r}: the file was edited; {_regenerate(path, *made, seed)}"
+        )
+    if name not in PROBLEMS:
+        raise DamagedFileError(
+            f"{path}: its `problem` attribute is {name!r}, not one of {sorted(PROBLEMS)}; {fix}"
+        )
+    problem = PROBLEMS[name]
+    if size not in problem.sizes:
+        raise DamagedFileError(
+            f"{path}: its `size` attribute is {size!r}, not a size of the {name!r} problem "
+            f"({', '.join(sorted(problem.sizes))}); {fix}"
+        )
+    if made is None:
+        raise UserError(
+            f"{path} was made with another configuration of the {name!r} problem than this "
+            f"version's; {fix}"
+        )
+    return int(version), problem, size, seed, config
+
+
+def _check_split(
+    path: Path, name: str, split: Split, problem: Problem, config: dict, fix: str
+) -> None:
+    """Refuse a split whose arrays are not what the ``config`` attribute generates."""
+    params = config["splits"][name]
+    sizes = config["sizes"]
+    count = sizes["train_per_param"] if name == "train" else sizes["test_per_param"]
+    rows = count * len(params)
+    traj = split.trajectories
+    if traj.ndim != problem.dims + 3 or traj.shape[:2] != (rows, sizes["frames"]):
+        raise DamagedFileError(
+            f"{path}: {name}/trajectories has shape {traj.shape}, but its `config` attribute "
+            f"makes ({rows}, {sizes['frames']}, ...) (trajectories, frames, channels, *grid); "
+            f"{fix}"
+        )
+    expected = {
+        "params": np.repeat(np.asarray(params, dtype=np.float64), count),
+        "conditions": np.repeat([problem.condition(p) for p in params], count),
+    }
+    for key, want in expected.items():
+        got = getattr(split, key)
+        if got.shape != want.shape or not np.array_equal(got, want):
+            values = ", ".join(f"{v:g}" for v in np.unique(want))
+            raise DamagedFileError(
+                f"{path}: {name}/{key} does not match its `config` attribute, which makes "
+                f"{count} trajectory(ies) for each of the {key} {values}; {fix}"
+            )
 
 
 def windows(split: Split, length: int, stride: int = 1) -> np.ndarray:

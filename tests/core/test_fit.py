@@ -111,6 +111,75 @@ def test_fit_reports_a_non_finite_start():
         fit(burgers, {40: np.zeros_like(u0)}, wrt="nu", u0=u0)
 
 
+def _heat_nu():
+    """A diffusion scene (ν = 0.1), its start and noise-free observations of 6 steps."""
+    heat = adjointsim.get("diffusion1d-ftcs")(n=16)
+    u = heat.random_state(np.random.default_rng(5))
+    traj = heat.rollout(u, 6, keep="all")
+    return heat, u, {k: traj[k] for k in range(1, 7)}
+
+
+def test_fit_refuses_a_start_outside_its_bounds():
+    """Moving the start onto a bound silently changes the problem (the optimiser used to stop
+    there after 0 iterations, reporting success with a worse misfit)."""
+    heat, u, obs = _heat_nu()
+    with pytest.raises(ValueError, match=r"start of nu \(0\.1\) is outside its bounds "
+                                         r"\(0\.2, 0\.5\).*params=\{'nu': \.\.\.\}.*wider"):
+        fit(heat, obs, wrt="nu", u0=u, bounds={"nu": (0.2, 0.5)})
+    with pytest.raises(ValueError, match=r"start of nu \(0\.04\) is outside its bounds "
+                                         r"\(None, 0\.03\)"):
+        problem(heat, obs, wrt="nu", u0=u, params={"nu": 0.04}, bounds={"nu": (None, 0.03)})
+
+
+@pytest.mark.parametrize(("given", "message"), [
+    ((0.5, 0.2), r"bounds of nu \(0\.5, 0\.2\) are reversed: lo 0\.5 > hi 0\.2"),
+    ((float("nan"), 1.0), r"bounds of nu \(nan, 1\.0\) have a NaN"),
+    ((float("inf"), None), r"bounds of nu \(inf, None\) exclude every value"),
+    ((None, -float("inf")), r"bounds of nu \(None, -inf\) exclude every value"),
+    (0.5, r"bounds of nu 0\.5 are not a pair"),
+    (("0", 1), r"bounds of nu \('0', 1\) are not a pair"),
+])
+def test_fit_rejects_bad_bounds(given, message):
+    heat, u, obs = _heat_nu()
+    accepted = r"; accepted: \(lo, hi\), each a real number or None \(no bound\), lo ≤ hi$"
+    with pytest.raises(ValueError, match=message + ".*" + accepted):
+        fit(heat, obs, wrt="nu", u0=u, bounds={"nu": given})
+    with pytest.raises(ValueError, match=r"bounds name nu, which is not fitted: bounds are "
+                                         r"accepted for the fitted parameters \(none\)"):
+        fit(heat, obs, wrt="state", u0=u, bounds={"nu": (0, 1)})
+
+
+@pytest.mark.parametrize("method", ["L-BFGS-B", "TNC", "SLSQP", "trust-constr"])
+def test_fit_reports_the_active_bounds(method):
+    heat, u, obs = _heat_nu()
+    r = fit(heat, obs, wrt="nu", u0=u, params={"nu": 0.05}, bounds={"nu": (-1, 0.08)},
+            method=method)
+    assert r.params["nu"] == pytest.approx(0.08, rel=1e-4)
+    assert r.active_bounds == {"nu": "upper"} and r.start_active_bounds == {}
+    # unbounded, or the optimum inside: no bound is active
+    r = fit(heat, obs, wrt="nu", u0=u, params={"nu": 0.05}, bounds={"nu": (0, None)},
+            method=method)
+    assert r.active_bounds == {} and r.start_active_bounds == {}
+
+
+def test_fit_says_why_it_stopped_at_the_start():
+    heat, u, obs = _heat_nu()
+    # on its upper bound, the misfit falls only beyond it
+    r = fit(heat, obs, wrt="nu", u0=u, params={"nu": 0.05}, bounds={"nu": (None, 0.05)})
+    assert r.iterations == 0 and r.params == {"nu": 0.05}
+    assert r.misfit == r.history[0]["misfit"] > 0
+    assert r.start_active_bounds == r.active_bounds == {"nu": "upper"}
+    assert r.message.startswith("CONVERGENCE: NORM OF PROJECTED GRADIENT <= PGTOL; 0 "
+                                "iterations: the stopping test already holds at the start")
+    assert "on a bound at the start: nu (upper)" in r.message
+    # at the truth (noise-free): nothing to improve
+    r = fit(heat, obs, wrt="nu", u0=u)
+    assert r.iterations == 0 and r.misfit == 0 and r.success
+    assert "0 iterations: the stopping test already holds at the start (gradient norm 0)" \
+        in r.message
+    assert fit(heat, obs, wrt="nu", u0=u, maxiter=0).message == "maxiter = 0: the starting guess"
+
+
 def test_fit_command(tmp_path, capsys):
     from adjointsim.cli import main
     from adjointsim.fit_run import demo_problem, write_observations
@@ -122,6 +191,7 @@ def test_fit_command(tmp_path, capsys):
         assert (out / name).is_file(), name
     result = json.loads((out / "result.json").read_text())
     assert max(result["param_rel_error"].values()) <= 1e-6
+    assert result["active_bounds"] == result["start_active_bounds"] == {}
     rows = (out / "history.csv").read_text().splitlines()
     assert rows[0].startswith("iteration,misfit") and len(rows) == result["iterations"] + 2
     capsys.readouterr()
@@ -167,6 +237,47 @@ def test_fit_command(tmp_path, capsys):
         assert message in err and len(err.strip().splitlines()) == 1, err
     # every input is checked before anything is written
     assert not (tmp_path / "x").exists()
+
+
+def test_fit_command_bounds(tmp_path, capsys):
+    """A start outside its bounds, reversed, non-finite or unfitted bounds: one line, exit 2;
+    the bounds active at the start and end in result.json and the summary."""
+    from adjointsim.cli import main
+
+    def fit_nu(*flags):
+        demo = [] if "--demo" in flags else ["--demo", "burgers-nu"]
+        return main(["fit", *demo, "--out", str(tmp_path / "nu"), "--no-progress",
+                     "--no-plots", *flags])
+
+    for flags, messages in [
+        (["--bounds", "nu=0.008:0.01"],
+         ["start of nu (0.006366197723675814) is outside its bounds nu=0.008:0.01",
+          "--start nu=VALUE", "wider --bounds nu=LO:HI"]),
+        (["--start", "nu=0.012"],
+         ["start of nu (0.012) is outside its bounds nu=0:0.01 (the demo's)"]),
+        (["--bounds", "nu=0.01:0.001"],
+         ["bounds nu=0.01:0.001 are reversed", "LO ≤ HI"]),
+        (["--bounds", "nu=nan:1"], ["bounds nu", "'nan' is not a finite number"]),
+        (["--bounds", "alpha=0:1"],
+         ["bounds name alpha, which is not a parameter (the parameters: nu)"]),
+        (["--demo", "ks-params", "--wrt", "anti_diffusion", "--bounds", "hyper_diffusion=0:"],
+         ["bounds name hyper_diffusion, which is not fitted", "fitted parameters anti_diffusion"]),
+    ]:
+        assert fit_nu(*flags) == 2, flags
+        err = capsys.readouterr().err
+        assert all(m in err for m in messages) and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "nu").exists()
+    # a start on its lower bound, the truth below it: 0 iterations, and why
+    assert fit_nu("--start", "nu=0.005", "--bounds", "nu=0.005:0.01") == 0
+    result = json.loads((tmp_path / "nu" / "result.json").read_text())
+    assert result["iterations"] == 0 and result["params"] == {"nu": 0.005}
+    assert result["active_bounds"] == result["start_active_bounds"] == {"nu": "lower"}
+    assert "0 iterations" in result["message"]
+    out = capsys.readouterr().out
+    assert "on a bound at the end: nu (lower)" in out and "0 iterations:" in out
+    # a demo's own bounds apply to the parameters fitted
+    assert main(["fit", "--demo", "ks-params", "--wrt", "state", "--maxiter", "1", "--out",
+                 str(tmp_path / "ks"), "--no-progress", "--no-plots"]) == 0
 
 
 def _fit(out, *flags):

@@ -135,8 +135,10 @@ def test_inputs_are_validated_once_and_both_passes_take_the_fast_path(keep, chec
     out = bridge.rollout(stepper, u0, n, ctrl, params, keep=keep, checkpoint=checkpoint)
     w = torch.from_numpy(np.random.default_rng(3).standard_normal(out.shape))
     grads = torch.autograd.grad(out, (u0, ctrl, params), w)
+    # A checkpoint adds one vjp_prepared of zero steps on an empty batch: the stepper's check
+    # of it, made before the rollout.
     assert calls == {"check_state": 1, "check_controls": 1, "param_array": 1,
-                     "rollout_prepared": 1, "vjp_prepared": 1}
+                     "rollout_prepared": 1, "vjp_prepared": 1 + (checkpoint is not None)}
     # ... and the same numbers as the checked path, bit for bit.
     arrays = [x.detach().numpy() for x in (u0, ctrl, params)]
     cot = w.numpy() if keep == "all" else {-1: w.numpy()}
@@ -322,3 +324,99 @@ def test_grouped_rollout_with_empty_groups_masks_and_zero_steps():
     assert out.shape == empty.shape
     (g,) = torch.autograd.grad(out.sum(), empty)
     assert g.shape == empty.shape
+
+
+# ------------------------------------------------------------------ validation in the forward call
+BAD_CHECKPOINTS = [2, 0, -1, 2.5, "8", True]
+
+
+@pytest.mark.parametrize("checkpoint", BAD_CHECKPOINTS)
+@pytest.mark.parametrize("grad", [True, False])
+def test_bad_checkpoints_are_refused_before_the_rollout_runs(checkpoint, grad, monkeypatch):
+    """With the stepper's own message, with or without a backward pass to come."""
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u0, ctrl, params = _inputs(stepper, 5)
+    try:
+        stepper.vjp(u0.detach().numpy(), 5, np.ones(u0.shape), checkpoint=checkpoint)
+    except ValueError as e:
+        expected = str(e)
+    else:
+        raise AssertionError(f"the stepper accepts checkpoint={checkpoint!r}")
+
+    def no_kernel(*args):
+        raise AssertionError("the rollout ran before checkpoint was checked")
+
+    monkeypatch.setattr(stepper, "_forward", no_kernel)
+    with torch.set_grad_enabled(grad), pytest.raises(ValueError) as info:
+        bridge.rollout(stepper, u0, 5, ctrl, params, checkpoint=checkpoint)
+    assert str(info.value) == expected
+
+
+def _numpy_inputs(stepper, n, batch=2):
+    u0, ctrl, params = _inputs(stepper, n, batch=batch)
+    return u0.detach().numpy(), ctrl.detach().numpy(), params.detach().numpy()
+
+
+@pytest.mark.parametrize("keep", ["last", "all"])
+def test_numpy_arrays_in_tensors_out(keep):
+    """Zero-copy, the stepper's numbers bit for bit, and gradients for the tensors among them."""
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u, c, p = _numpy_inputs(stepper, 3)
+    before = [a.copy() for a in (u, c, p)]
+    expected = stepper.rollout(u, 3, c, p, keep=keep)
+    out = bridge.rollout(stepper, u, 3, c, p, keep=keep)
+    assert isinstance(out, torch.Tensor) and out.grad_fn is None
+    assert out.numpy().tobytes() == expected.tobytes()
+    for a, b in zip((u, c, p), before, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # A tensor among arrays still gets its gradient.
+    ctrl = torch.from_numpy(c).requires_grad_()
+    out = bridge.rollout(stepper, u, 3, ctrl, p, keep=keep)
+    (g,) = torch.autograd.grad(out.sum(), ctrl)
+    ref = stepper.vjp(u, 3, np.ones(out.shape) if keep == "all" else np.ones(u.shape), c, p)
+    assert g.numpy().tobytes() == ref.controls.tobytes()
+    # One step, and a grouped rollout.
+    one = bridge.step(stepper, u, c[0], p)
+    assert one.numpy().tobytes() == stepper.step(u, c[0], p).tobytes()
+    grouped = bridge.rollout_grouped([(stepper, slice(None))], u, 3)
+    assert grouped.numpy().tobytes() == stepper.rollout(u, 3).tobytes()
+
+
+def test_numpy_arrays_of_any_layout_and_read_only_ones_are_taken_as_the_stepper_takes_them():
+    import warnings
+
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u, c, p = _numpy_inputs(stepper, 2, batch=4)
+    strided, reversed_rows = u[::2], u[::-1]
+    frozen = c.copy()
+    frozen.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # torch warns about read-only arrays: not for ours
+        for x in (strided, reversed_rows):
+            out = bridge.rollout(stepper, x, 2)
+            assert out.numpy().tobytes() == stepper.rollout(x, 2).tobytes()
+        out = bridge.rollout(stepper, u, 2, frozen, p)
+        assert out.numpy().tobytes() == stepper.rollout(u, 2, frozen, p).tobytes()
+
+
+def test_inputs_that_are_neither_tensors_nor_arrays_are_refused_by_name():
+    stepper = adjointsim.get("diffusion1d-ftcs").default()
+    u, c, p = _numpy_inputs(stepper, 1)
+    pass_one = "pass a torch.Tensor or a NumPy array"
+    cases = [
+        (lambda: bridge.rollout(stepper, u.tolist(), 1), f"u0 is a list; {pass_one}"),
+        (lambda: bridge.rollout(stepper, None, 1), f"u0 is None; {pass_one}"),
+        (lambda: bridge.rollout(stepper, u, 1, c.tolist()), f"controls is a list; {pass_one}"),
+        (lambda: bridge.rollout(stepper, u, 1, c, tuple(p)), f"params is a tuple; {pass_one}"),
+        (lambda: bridge.step(stepper, u.tolist()), f"u is a list; {pass_one}"),
+        (lambda: bridge.step(stepper, u, c[0].tolist()), f"control is a list; {pass_one}"),
+        (lambda: bridge.step(stepper, u, c[0], 0.05), f"params is a float; {pass_one}"),
+        (lambda: bridge.rollout_grouped([(stepper, slice(None))], u.tolist(), 1),
+         f"u0 is a list; {pass_one}"),
+    ]
+    for call, message in cases:
+        with pytest.raises(TypeError, match=message.replace("(", r"\(")):
+            call()
+    with pytest.raises(TypeError, match=r"u0 is a NumPy array of dtype int64; expected float32 "
+                       r"or float64 \(convert with u0.astype\(np.float64\)\)"):
+        bridge.rollout(stepper, u.astype(np.int64), 1)
