@@ -30,6 +30,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+
 from adjointsim.train import control  # noqa: E402
 from adjointsim.train.unroll import GradientFlow  # noqa: E402
 

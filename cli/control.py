@@ -1,8 +1,58 @@
-"""``adjointsim control``: train a controller through a simulator."""
+"""``adjointsim control``: a controller trained through a simulator, resumable."""
 
 from __future__ import annotations
 
-from adjointsim.train.control import add_arguments as arguments
-from adjointsim.train.control import run_command as run
+import argparse
+import math
+from pathlib import Path
 
-__all__ = ["arguments", "run"]
+from .options import config_flags, overrides, run_options
+
+_HELPS = {
+    "mode": "the gradient flow: R (regular BPTT), M, S, N, or C (combined)",
+    "clip": "clip each update at 1, by value or by global norm",
+    "poles": "cartpole: the number of poles",
+    "target": "quantum: the eigenstate to reach",
+    "control_weight": "guidance: the weight of the control cost",
+    "seed": "random seed of the initial states, the weights and the batch order",
+    "epochs": "epochs; --resume continues a run to more",
+    "lr": "Adam's learning rate",
+    "train": "training initial states",
+    "test": "test initial states",
+    "batch": "initial states per update",
+    "threads": "torch threads",
+}
+
+
+def arguments(p: argparse.ArgumentParser) -> None:
+    from adjointsim.train.control import TASKS, ControlConfig
+
+    p.add_argument("task", choices=tuple(TASKS), help="the control problem")
+    run_options(p, "runs/control-TASK-MODE")
+    config_flags(p, ControlConfig, ControlConfig.ACCEPTED, skip=("task", "out"), helps=_HELPS)
+
+
+def run(args: argparse.Namespace) -> int:
+    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.train.control import ControlConfig, get_task, train_controller
+
+    values = overrides(args, ControlConfig)
+    if args.out is not None:
+        values["out"] = str(args.out)
+    elif args.config is None:
+        values["out"] = str(Path("runs") / f"control-{args.task}-{values.get('mode', 'C')}")
+    cfg = ControlConfig.load(args.config, **values)
+    out = Path(cfg.out)
+    if args.resume:
+        require_checkpoint(out)
+    task = get_task(cfg.task, cfg.level)
+    n = sum(p.numel() for p in task.net().parameters())
+    print(f"{cfg.task} ({task.knob} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "
+          f"{n:,} parameters", flush=True)
+    with run_errors(out):
+        result = train_controller(cfg, resume=args.resume, progress=args.progress,
+                                  overwrite=args.overwrite)
+    loss = result["test_loss"]
+    loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
+    print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")
+    return 0

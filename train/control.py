@@ -1,13 +1,13 @@
 """Controllers trained through simulators with the gradient-flow modes of stabilised BPTT.
 
 A controller network N reads the state and outputs a control, the simulator advances one step
-(``adjointsim.train.bridge.step``: the solver's compiled step forward, its hand-written adjoint backward),
-and the loss judges the trajectory (Schnell & Thuerey 2024):
+(``adjointsim.train.bridge.step``: the solver's compiled step forward, its hand-written adjoint
+backward), and the loss judges the trajectory (Schnell & Thuerey 2024):
 
     c_t = N(flow.net(x_t); θ),   x_{t+1} = S(flow.phys(x_t), c_t),
 
-where ``flow`` (:class:`adjointsim.train.unroll.GradientFlow`) decides where gradients stop (R, M, S, N,
-C). The three tasks of the paper, with the note's constants:
+where ``flow`` (:class:`adjointsim.train.unroll.GradientFlow`) decides where gradients stop
+(R, M, S, N, C). The three tasks of the paper, with the note's constants:
 
 * ``cartpole``: 1–4 poles (``--poles``), 100 steps of Δt = 0.01, loss 1 − mean_i cos θ_i at
   the last step (swing-up from hanging);
@@ -18,23 +18,23 @@ C). The three tasks of the paper, with the note's constants:
 
 Training: Adam, 256 training and 256 test initial states, batch 8, the last layer of every
 controller zero-initialised (c = 0 at the start, as in the reference runs). A run directory
-holds ``config.json``, ``checkpoint.pt`` (atomic, every epoch), ``history.csv`` (per epoch:
-mean minibatch loss, full training and test loss, update norm, cos(g_M, g_R) on the epoch's
-first minibatch, seconds), ``result.json`` and the plots ``test_loss.png`` and ``rollout.png``.
+holds ``config.json``, ``checkpoint.pt`` (atomic, every epoch, and on Ctrl-C between two
+updates), ``history.csv`` (per epoch: mean minibatch loss, full training and test loss, update
+norm, cos(g_M, g_R) on the epoch's first minibatch, seconds), ``result.json`` and the plots
+``test_loss.png`` and ``rollout.png``. A resumed run ends with the weights of an uninterrupted
+one, and may be continued to more epochs.
 """
 
 from __future__ import annotations
 
-import csv
+import dataclasses
 import json
-import argparse
 import math
 import time
-import tomllib
 import warnings
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -42,13 +42,25 @@ from torch import nn
 from tqdm.auto import tqdm
 
 import adjointsim
-from adjointsim.errors import RunExists
-from adjointsim.files import atomic_path, pyplot, save_figure, write_json, write_text
-from adjointsim.run import read_result, refuse_foreign, run_errors
+from adjointsim.errors import RunExists, UserError
+from adjointsim.files import pyplot, save_figure, uninterrupted, write_json
+from adjointsim.nets.mlp import MLP
+from adjointsim.run import (
+    SEEDS,
+    Config,
+    Interval,
+    differing,
+    discard,
+    physical_memory,
+    plot_history,
+    read_result,
+    refuse_foreign,
+    write_history,
+)
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import load_checkpoint, restore, save_checkpoint
 from .unroll import CLIPS, FLOWS, GradientFlow
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -62,6 +74,8 @@ class Task:
     knob: str  # the complexity option's config key
     levels: tuple  # accepted values, easiest first
     steps: int
+    #: values per state in the controller's widest layer (for the memory estimate)
+    widest = 100
 
     def __init__(self, level: Any):
         if level not in self.levels:
@@ -87,9 +101,18 @@ class Task:
     def net(self) -> nn.Module:
         size = int(np.prod(self.solver.state_shape(1)))
         return _zero_last(nn.Sequential(
-            nn.Flatten(), nn.Linear(size, 100), nn.Tanh(), nn.Linear(100, 100), nn.Tanh(),
-            nn.Linear(100, int(np.prod(self.solver.control_shape))),
+            nn.Flatten(), MLP(size, int(np.prod(self.solver.control_shape)), width=100, depth=2),
         ))
+
+    def memory(self, train: int, test: int, batch: int, itemsize: int) -> int:
+        """Bytes a run needs, about: the initial states (drawn in float64), then the larger of
+        a rollout over all of them at once (no tape) and one update's tape (C's doubled
+        batch). The factors are measured with the paper's controllers, rounded up."""
+        size = int(np.prod(self.solver.state_shape(1)))
+        states = (train + test) * size * (8 + itemsize)
+        rollout = max(train, test) * (4 * self.widest * itemsize + 64 * size)
+        tape = batch * self.steps * 8 * self.widest * itemsize
+        return states + max(rollout, tape)
 
     def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
         """Loss term of the state x_{t+1} reached with control c_t (None: no term)."""
@@ -126,6 +149,7 @@ class GuidanceTask(Task):
 
 class QuantumTask(Task):
     name, knob, levels, steps = "quantum", "target", (3, 4, 5), 128
+    widest = 60 * 16  # the first convolution's channels × points
 
     def __init__(self, level: Any = 3):
         super().__init__(level)
@@ -169,7 +193,7 @@ def get_task(name: str, level: Any = None) -> Task:
 
 
 def _zero_last(net: nn.Sequential) -> nn.Sequential:
-    last = [m for m in net if isinstance(m, nn.Linear)][-1]
+    last = [m for m in net.modules() if isinstance(m, nn.Linear)][-1]
     nn.init.zeros_(last.weight)
     nn.init.zeros_(last.bias)
     return net
@@ -184,7 +208,8 @@ def closed_loop(
     keep: bool = False,
 ) -> tuple[torch.Tensor, list[torch.Tensor] | None]:
     """Run the controller through the simulator; returns the loss and (if ``keep``) the
-    states x_0..x_n and controls. One solver call per step through ``adjointsim.train.bridge.step``."""
+    states x_0..x_n and controls. One solver call per step through
+    ``adjointsim.train.bridge.step``."""
     flow = flow or GradientFlow("R")
     x = flow.start(x0)
     terms: list[torch.Tensor] = []
@@ -211,8 +236,13 @@ def evaluate(task: Task, net: nn.Module, x0: torch.Tensor) -> float:
 
 
 # ----------------------------------------------------------------------------- config
+#: the longest run accepted, in training rollouts (epochs × train): 400 times the paper's runs
+#: of 1000 epochs of 256 initial states, months of computing
+MAX_ROLLOUTS = 10**8
+
+
 @dataclass
-class ControlConfig:
+class ControlConfig(Config):
     task: str = "cartpole"
     mode: str = "C"
     clip: str = "none"
@@ -230,66 +260,64 @@ class ControlConfig:
     out: str = "runs/control"
     threads: int = 1
 
-    @classmethod
-    def load(cls, path: str | Path | None = None, **overrides: Any) -> ControlConfig:
-        """A config from a TOML file (optional) and keyword overrides; bad keys and values
-        fail with a message naming them and what is accepted."""
-        values: dict[str, Any] = {}
-        if path is not None:
-            try:
-                with open(path, "rb") as f:
-                    values.update(tomllib.load(f))
-            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-                raise ValueError(f"{path} is not valid TOML: {e}") from None
-            except OSError as e:
-                raise ValueError(f"cannot read config {path}: {e.strerror}") from None
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise ValueError(f"unknown config option(s) {unknown}; known: {sorted(known)}")
-        for k, v in values.items():
-            want = type(known[k].default)
-            ok = isinstance(v, want) and not isinstance(v, bool) or (
-                want is float and isinstance(v, int) and not isinstance(v, bool))
-            if not ok:
-                raise ValueError(f"config key {k!r} must be {want.__name__}, got {v!r}")
-            if want is float:
-                values[k] = float(v)
-        cfg = cls(**values)
-        cfg.validate()
-        return cfg
+    ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = {
+        "task": tuple(TASKS),
+        "mode": FLOWS,
+        "clip": CLIPS,
+        **{cls.knob: cls.levels for cls in TASKS.values()},
+        "seed": SEEDS,
+        "epochs": Interval(1),
+        "lr": Interval(0, lo_open=True),
+        "train": Interval(1),
+        "test": Interval(1),
+        "batch": Interval(1),
+        "dtype": tuple(DTYPES),
+        "out": "a non-empty path",
+        "threads": Interval(1),
+    }
 
     @property
     def level(self) -> Any:
-        return getattr(self, TASKS[self.task].knob) if self.task in TASKS else None
+        return getattr(self, TASKS[self.task].knob)
 
-    def validate(self) -> None:
-        get_task(self.task, self.level)
-        if self.mode not in FLOWS:
-            raise ValueError(f"unknown mode {self.mode!r}; choose from {', '.join(FLOWS)}")
-        if self.clip not in CLIPS:
-            raise ValueError(f"unknown clip {self.clip!r}; choose from {', '.join(CLIPS)}")
-        if self.dtype not in DTYPES:
-            raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, not {self.dtype!r}")
-        for k in ("epochs", "train", "test", "batch", "threads"):
-            if getattr(self, k) < 1:
-                raise ValueError(f"{k} must be ≥ 1, not {getattr(self, k)}")
+    def check(self, where: str) -> None:
+        """Only the task's own level knob may leave its default; a batch fits in the training
+        states; the run fits in memory and in a lifetime (refused before anything is drawn)."""
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        for name, cls in TASKS.items():
+            if name != self.task and getattr(self, cls.knob) != defaults[cls.knob]:
+                raise UserError(f"config key {cls.knob!r}{where}: applies to the {name} task, "
+                                f"not {self.task}")
         if self.batch > self.train:
-            raise ValueError(f"batch ({self.batch}) must not exceed train ({self.train})")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise ValueError(f"lr must be a finite number > 0, not {self.lr}")
-        if not 0 <= self.seed < 2**63:
-            raise ValueError(f"seed must be in 0..2**63 - 1, not {self.seed}")
+            raise UserError(f"config key 'batch'{where}: {self.batch} exceeds train "
+                            f"({self.train}), the initial states it is drawn from")
+        task = get_task(self.task, self.level)
+        need = task.memory(self.train, self.test, self.batch, DTYPES[self.dtype].itemsize)
+        have = physical_memory()
+        if have is not None and need > have:
+            raise UserError(f"config keys 'train', 'test' and 'batch'{where}: {self.train} "
+                            f"training and {self.test} test initial states in batches of "
+                            f"{self.batch} need about {need / 2**30:,.1f} GiB of memory (the "
+                            "states, a rollout over all of them at once, an update's tape), "
+                            f"more than this machine's {have / 2**30:,.1f} GiB; use fewer")
+        if self.epochs * self.train > MAX_ROLLOUTS:
+            raise UserError(f"config keys 'epochs' and 'train'{where}: {self.epochs} × "
+                            f"{self.train} = {self.epochs * self.train:.3g} training rollouts "
+                            f"of {task.steps} steps, more than the {MAX_ROLLOUTS:.0e} accepted "
+                            "(the paper's runs take 2.6e+05); use fewer")
 
 
 # ----------------------------------------------------------------------------- training
 HISTORY_KEYS = ("epoch", "batch_loss", "train_loss", "test_loss", "update_norm", "cos_mr",
                 "skipped", "seconds")
+#: a run directory's files besides config.json, checkpoint.pt and result.json
+RUN_FILES = ("history.csv", "test_loss.png", "rollout.png")
+#: what may change when a run is resumed: its length, where it lives, how many threads it uses
+RESUMABLE = ("epochs", "out", "threads")
 
 
 def initial_states(cfg: ControlConfig, task: Task) -> tuple[torch.Tensor, torch.Tensor]:
-    """Training and test initial states, drawn from the seed (test states from seed + 10⁶)."""
+    """Training and test initial states, drawn from the seed (two independent streams)."""
     dtype = DTYPES[cfg.dtype]
     tr = task.initial_states(np.random.default_rng([cfg.seed, 0]), cfg.train)
     te = task.initial_states(np.random.default_rng([cfg.seed, 1]), cfg.test)
@@ -301,97 +329,74 @@ def build_net(cfg: ControlConfig, task: Task) -> nn.Module:
     return task.net().to(DTYPES[cfg.dtype])
 
 
-def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> dict:
-    """Train a controller as configured; returns the result (also in ``cfg.out``)."""
+def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = True,
+                     overwrite: bool = False) -> dict:
+    """Train a controller as configured; returns the result (also in ``cfg.out``).
+
+    A ``cfg.out`` holding a run is refused unless ``resume`` (continue it, to more epochs too)
+    or ``overwrite`` (discard it and start again) is given. Ctrl-C saves a checkpoint between
+    two updates and re-raises.
+    """
+    cfg.validate()
+    if resume and overwrite:
+        raise UserError("--resume continues a run and --overwrite discards it: pass one")
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    ckpt_path = out / "checkpoint.pt"
+    ckpt = _claim(cfg, out, resume, overwrite)
+    if ckpt is not None and _finished(ckpt, cfg, out):
+        return read_result(out / "result.json")
     task = get_task(cfg.task, cfg.level)
     x_train, x_test = initial_states(cfg, task)
     net = build_net(cfg, task)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    state = {"epoch": 0, "finished": False}
+    # the epoch's progress too, so that Ctrl-C between two updates resumes where it stopped
+    state = {"epoch": 0, "finished": False, **_fresh_epoch()}
     history: list[dict] = []
-    if not ckpt_path.exists():
-        if (out / "result.json").exists():
-            raise RunExists(f"{out} holds a finished run without its checkpoint; choose "
-                            "another --out")
-        refuse_foreign(out, asdict(cfg))
-    else:
-        ckpt = _load(ckpt_path)
-        # the epoch count may grow; where the run lives and how many threads it uses may change
-        differ = sorted(k for k, v in asdict(cfg).items()
-                        if k not in ("epochs", "out", "threads") and ckpt["config"].get(k) != v)
-        if differ:
-            raise ValueError(f"{out} holds a run of another configuration (differs in "
-                             f"{', '.join(differ)}); use a new --out")
-        if ckpt["state"]["epoch"] > cfg.epochs:
-            raise ValueError(f"{out} holds {ckpt['state']['epoch']} epochs; pass --epochs "
-                             f"{ckpt['state']['epoch']} or more, or choose another --out")
-        # (a run stopped between its last checkpoint and result.json resumes to write it)
-        if (ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs
-                and (out / "result.json").exists()):
-            if not resume:
-                raise ValueError(f"{out} holds a finished run; choose another --out "
-                                 "(or delete it to train again)")
-            return read_result(out / "result.json")
-        if not resume:
-            raise ValueError(f"{out} holds an unfinished run; continue it with --resume or "
-                             "choose another --out")
-        net.load_state_dict(ckpt["net"])
-        opt.load_state_dict(ckpt["optimizer"])
-        state, history = ckpt["state"], ckpt["history"]
+    if ckpt is not None:
+        restore(net, ckpt["net"], out / "checkpoint.pt")
+        restore(opt, ckpt["optimizer"], out / "checkpoint.pt")
+        state, history = state | ckpt["state"], ckpt["history"]
         state["finished"] = False
     out.mkdir(parents=True, exist_ok=True)
-    write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
+    write_json(out / "config.json", cfg.as_dict())
+
+    def save() -> None:
+        save_checkpoint({"config": cfg.as_dict(), "net": net.state_dict(),
+                         "optimizer": opt.state_dict(), "state": dict(state),
+                         "history": history}, out / "checkpoint.pt")
+
     params = list(net.parameters())
     per_epoch = cfg.train // cfg.batch
     bar = tqdm(total=cfg.epochs, initial=state["epoch"], unit="epoch", disable=not progress,
                desc=f"{cfg.task} {cfg.mode}")
-    while state["epoch"] < cfg.epochs:
-        epoch, start = state["epoch"], time.perf_counter()
-        order = torch.randperm(cfg.train, generator=torch.Generator().manual_seed(
-            int(np.random.SeedSequence([cfg.seed, epoch]).generate_state(1)[0])))
-        losses, norms, cos, skipped = [], [], float("nan"), 0
-        for i in range(per_epoch):
-            flow = GradientFlow(cfg.mode, cfg.clip, diagnose=i == 0)
-            x0 = x_train[order[i * cfg.batch:(i + 1) * cfg.batch]]
-            try:
-                loss = closed_loop(task, net, x0, flow)[0]
-            except (NonFiniteStateError, NonFiniteInputError):
-                skipped += 1  # the simulator blew up under this controller: skip the update
-                continue
-            update = flow.backward(loss, params)
-            if not (math.isfinite(float(loss.detach())) and math.isfinite(update.norm())):
-                skipped += 1
-                continue
-            opt.step()
-            losses.append(float(loss.detach()))
-            norms.append(update.norm())
-            if i == 0:
-                cos = update.cosine()
-        history.append({
-            "epoch": epoch + 1,
-            "batch_loss": float(np.mean(losses)) if losses else float("nan"),
-            "train_loss": evaluate(task, net, x_train),
-            "test_loss": evaluate(task, net, x_test),
-            "update_norm": float(np.mean(norms)) if norms else float("nan"),
-            "cos_mr": cos,
-            "skipped": skipped,
-            "seconds": time.perf_counter() - start,
-        })
-        state["epoch"] += 1
-        state["finished"] = state["epoch"] == cfg.epochs
-        _write_history(history, out)
-        _save(ckpt_path, cfg, net, opt, state, history)
-        bar.update()
-        bar.set_postfix(test=f"{history[-1]['test_loss']:.3e}")
-    bar.close()
-    result = {**asdict(cfg), "level": cfg.level, "test_loss": history[-1]["test_loss"],
+    try:
+        while state["epoch"] < cfg.epochs:
+            order = torch.randperm(cfg.train, generator=torch.Generator().manual_seed(
+                int(np.random.SeedSequence([cfg.seed, state["epoch"]]).generate_state(1)[0])))
+            while state["step"] < per_epoch:
+                with uninterrupted():
+                    start, i = time.perf_counter(), state["step"]
+                    _update(cfg, task, net, opt, params,
+                            x_train[order[i * cfg.batch:(i + 1) * cfg.batch]], state)
+                    state["step"] += 1
+                    state["seconds"] += time.perf_counter() - start
+            with uninterrupted():
+                _end_epoch(cfg, task, net, x_train, x_test, state, history)
+                write_history(out / "history.csv", history, HISTORY_KEYS)
+            save()
+            bar.update()
+            bar.set_postfix(test=f"{history[-1]['test_loss']:.3e}")
+    except KeyboardInterrupt:
+        save()
+        raise
+    finally:
+        bar.close()
+    result = {**cfg.as_dict(), "level": cfg.level, "test_loss": history[-1]["test_loss"],
               "train_loss": history[-1]["train_loss"], "parameters": sum(p.numel() for p in params),
               "seconds": float(sum(h["seconds"] for h in history))}
     # the plots first: a run stopped while plotting has no result.json and resumes to them
-    plot_history([history], [f"{cfg.mode}"], out / "test_loss.png", title=_title(cfg))
+    plot_history(out / "test_loss.png", {cfg.mode: history}, "epoch", "test_loss", "epoch",
+                 "test loss", title=_title(cfg), smooth=30)
     try:
         plot_rollout(task, net, x_test[:1], out / "rollout.png", title=_title(cfg))
     except (NonFiniteStateError, NonFiniteInputError) as e:
@@ -401,60 +406,108 @@ def train(cfg: ControlConfig, resume: bool = False, progress: bool = True) -> di
     return result
 
 
+def _fresh_epoch() -> dict:
+    """An epoch's progress before its first update."""
+    return {"step": 0, "losses": [], "norms": [], "cos": float("nan"), "skipped": 0,
+            "seconds": 0.0}
+
+
+def _update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Optimizer,
+            params: list[torch.Tensor], x0: torch.Tensor, state: dict) -> None:
+    """One minibatch's update, recorded in the epoch's progress (``state``)."""
+    first = state["step"] == 0
+    flow = GradientFlow(cfg.mode, cfg.clip, diagnose=first)
+    try:
+        loss = closed_loop(task, net, x0, flow)[0]
+    except (NonFiniteStateError, NonFiniteInputError):
+        state["skipped"] += 1  # the simulator blew up under this controller: skip the update
+        return
+    update = flow.backward(loss, params)
+    if not (math.isfinite(float(loss.detach())) and math.isfinite(update.norm())):
+        state["skipped"] += 1
+        return
+    opt.step()
+    state["losses"].append(float(loss.detach()))
+    state["norms"].append(update.norm())
+    if first:
+        state["cos"] = update.cosine()
+
+
+def _end_epoch(cfg: ControlConfig, task: Task, net: nn.Module, x_train: torch.Tensor,
+               x_test: torch.Tensor, state: dict, history: list[dict]) -> None:
+    """The epoch's history row (with the full training and test losses); the next epoch."""
+    start = time.perf_counter()
+    row = {
+        "epoch": state["epoch"] + 1,
+        "batch_loss": float(np.mean(state["losses"])) if state["losses"] else float("nan"),
+        "train_loss": evaluate(task, net, x_train),
+        "test_loss": evaluate(task, net, x_test),
+        "update_norm": float(np.mean(state["norms"])) if state["norms"] else float("nan"),
+        "cos_mr": state["cos"],
+        "skipped": state["skipped"],
+    }
+    history.append({**row, "seconds": state["seconds"] + time.perf_counter() - start})
+    state.update(epoch=state["epoch"] + 1, **_fresh_epoch())
+    state["finished"] = state["epoch"] == cfg.epochs
+
+
+def _claim(cfg: ControlConfig, out: Path, resume: bool, overwrite: bool) -> dict | None:
+    """The checkpoint of the run in ``out`` to continue (None: start afresh). Somebody else's
+    files, a run of another configuration, and a run not to be continued are refused."""
+    ckpt_path = out / "checkpoint.pt"
+    again = "choose another --out, or start again with --overwrite"
+    if overwrite:
+        if not _holds_control_run(out):
+            refuse_foreign(out, cfg.as_dict())
+        discard(out, RUN_FILES)
+        return None
+    if not ckpt_path.exists():
+        if (out / "result.json").exists():
+            raise RunExists(f"{out} holds a finished run without its checkpoint; {again}")
+        refuse_foreign(out, cfg.as_dict())
+        return None
+    ckpt = load_checkpoint(ckpt_path, ("config", "net", "optimizer", "state", "history"),
+                           recover=f"delete it, or {again}")
+    differ = [k for k in differing(cfg.as_dict(), ckpt["config"]) if k not in RESUMABLE]
+    if differ:
+        raise RunExists(f"{out} holds a run of another configuration (differs in "
+                        f"{', '.join(differ)}); {again}")
+    state = ckpt["state"]
+    begun = state["epoch"] + (state.get("step", 0) > 0)  # epochs finished or begun
+    if begun > cfg.epochs:
+        part = " and part of the next" if begun > state["epoch"] else ""
+        raise UserError(f"{out} holds {state['epoch']} epochs{part}; pass --epochs {begun} or "
+                        f"more, or {again}")
+    if not resume:
+        what = ("a finished run; continue it to more --epochs with --resume"
+                if _finished(ckpt, cfg, out) else "an unfinished run; continue it with --resume")
+        raise RunExists(f"{out} holds {what}, {again}")
+    return ckpt
+
+
+def _finished(ckpt: dict, cfg: ControlConfig, out: Path) -> bool:
+    """Whether the checkpoint's run is the finished run of ``cfg``, its result written (a run
+    stopped between its last checkpoint and result.json resumes to write it)."""
+    return (ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs
+            and (out / "result.json").exists())
+
+
+def _holds_control_run(out: Path) -> bool:
+    """Whether ``out`` holds a run of this command (of any configuration): what --overwrite
+    may discard."""
+    try:
+        theirs = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(theirs, dict) and set(theirs) == {
+        f.name for f in dataclasses.fields(ControlConfig)}
+
+
 def _title(cfg: ControlConfig) -> str:
-    return f"{cfg.task}, {cfg.task and TASKS[cfg.task].knob} {cfg.level}, mode {cfg.mode}"
-
-
-def _load(path: Path) -> dict:
-    return load_checkpoint(path, ("config", "net", "optimizer", "state", "history"))
-
-
-def _save(path: Path, cfg, net, opt, state, history) -> None:
-    save_checkpoint({"config": asdict(cfg), "net": net.state_dict(),
-                     "optimizer": opt.state_dict(), "state": dict(state),
-                     "history": history}, path)
-
-
-def _write_history(history: list[dict], out: Path) -> None:
-    with atomic_path(out / "history.csv") as tmp, open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=HISTORY_KEYS)
-        w.writeheader()
-        w.writerows(history)
-
-
-def load_history(path: str | Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    return f"{cfg.task}, {TASKS[cfg.task].knob} {cfg.level}, mode {cfg.mode}"
 
 
 # ----------------------------------------------------------------------------- plots
-def moving_average(y: np.ndarray, k: int = 30) -> np.ndarray:
-    """Trailing mean over up to ``k`` epochs (the paper's 30-epoch smoothing)."""
-    y = np.asarray(y, dtype=float)
-    c = np.cumsum(np.insert(np.nan_to_num(y, nan=0.0), 0, 0.0))
-    n = np.arange(1, len(y) + 1)
-    lo = np.maximum(0, n - k)
-    return (c[n] - c[lo]) / (n - lo)
-
-
-def plot_history(histories: list[list[dict]], labels: list[str], path: Path,
-                 title: str = "") -> None:
-    """Test loss over epochs, log scale, raw (faint) and 30-epoch moving average."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 3.8))
-    for h, label in zip(histories, labels):
-        e = np.array([r["epoch"] for r in h])
-        y = np.array([r["test_loss"] for r in h])
-        (line,) = ax.plot(e, moving_average(y), label=label)
-        ax.plot(e, y, color=line.get_color(), alpha=0.25, lw=0.7)
-    ax.set_yscale("log")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("test loss (30-epoch mean)")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
-    save_figure(fig, path, dpi=110)
-
-
 @torch.no_grad()
 def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
                  title: str = "") -> None:
@@ -495,57 +548,3 @@ def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
         ax.set_ylabel("x")
     ax.set_title(title, fontsize=9)
     save_figure(fig, path, dpi=110)
-
-
-# ----------------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", help=f"one of {', '.join(TASKS)}")
-    p.add_argument("--config", type=Path, default=None, help="TOML file of ControlConfig keys")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--no-progress", action="store_true")
-    helps = {
-        "mode": "R, M, S, N or C (default C)", "clip": "none, value or norm (at 1; default none)",
-        "poles": "cartpole: 1..4 (default 1)", "target": "quantum: eigenstate 3..5 (default 3)",
-        "control_weight": "guidance: 1, 0.1, 0.01 or 0.001 (default 1)",
-        "out": "run directory (default runs/control-TASK-MODE)",
-    }
-    for f in fields(ControlConfig):
-        if f.name == "task":
-            continue
-        p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=str, default=None,
-                       help=helps.get(f.name, f"default {f.default!r}"))
-    p.set_defaults(func=run_command)
-
-
-def run_command(args) -> int:
-    known = {f.name: f for f in fields(ControlConfig)}
-    overrides: dict[str, Any] = {"task": args.task}
-    for k, f in known.items():
-        v = getattr(args, k, None)
-        if k == "task" or v is None:
-            continue
-        kind = type(f.default)
-        try:
-            overrides[k] = kind(v) if kind is not str else v
-        except ValueError:
-            raise ValueError(f"--{k.replace('_', '-')} must be {kind.__name__}, got {v!r}") \
-                from None
-    if args.task not in TASKS:
-        raise ValueError(f"unknown task {args.task!r}; choose from {', '.join(TASKS)}")
-    for t, cls in TASKS.items():
-        if t != args.task and cls.knob in overrides:
-            raise ValueError(f"--{cls.knob.replace('_', '-')} applies to {t}, not {args.task}")
-    if "out" not in overrides and args.config is None:
-        overrides["out"] = str(Path("runs") / f"control-{args.task}-{overrides.get('mode', 'C')}")
-    cfg = ControlConfig.load(args.config, **overrides)
-    task = get_task(cfg.task, cfg.level)
-    n = sum(p.numel() for p in task.net().parameters())
-    print(f"{cfg.task} ({task.knob} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "
-          f"{n:,} parameters", flush=True)
-    out = Path(cfg.out)
-    with run_errors(out):
-        result = train(cfg, resume=args.resume, progress=not args.no_progress)
-    loss = result["test_loss"]
-    loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
-    print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")
-    return 0

@@ -1,8 +1,8 @@
 """The stabilised-BPTT study: tasks × complexity levels × gradient-flow modes × clipping × seeds.
 
-Each cell trains one controller (:func:`adjointsim.train.control.train`) in its own run directory and
-returns its row: ``task``, ``level``, ``mode``, ``clip``, ``seed``, ``test_loss`` (final), the
-final training loss, the per-epoch test losses and the time. Sizes:
+Each cell trains one controller (:func:`adjointsim.train.control.train_controller`) in its own
+run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``seed``,
+``test_loss`` (final), the final training loss, the per-epoch test losses and the time. Sizes:
 
 * ``tiny``: two cells of a few seconds (the end-to-end test);
 * ``quick``: every task at its easiest and hardest level, modes R/M/S/C, no clipping, one seed,
@@ -20,12 +20,12 @@ final training loss, the per-epoch test losses and the time. Sizes:
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from adjointsim.files import pyplot, save_figure, write_text
+from adjointsim.run import plot_history, read_history
 from adjointsim.runner import Study, register_study
 
 from ..control import (
@@ -35,8 +35,7 @@ from ..control import (
     evaluate,
     get_task,
     initial_states,
-    load_history,
-    train,
+    train_controller,
 )
 from ..unroll import CLIPS, FLOWS
 
@@ -100,15 +99,15 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     )
     setattr(cfg, knob, cell["level"])
     cfg.validate()
-    result = train(cfg, resume=True, progress=False)
-    history = load_history(Path(run_dir) / "history.csv")
+    result = train_controller(cfg, resume=True, progress=False)
+    history = read_history(Path(run_dir) / "history.csv")
     # the untrained controller outputs c = 0 (zero last layer): the uncontrolled loss
     task = get_task(cfg.task, cfg.level)
     untrained = evaluate(task, build_net(cfg, task), initial_states(cfg, task)[1])
     return {**cell, "test_loss": result["test_loss"], "train_loss": result["train_loss"],
             "untrained_test_loss": untrained,
             "seconds": result["seconds"], "test_history": [h["test_loss"] for h in history],
-            "config": asdict(cfg)}
+            "config": cfg.as_dict()}
 
 
 def table(rows: list[dict]) -> str:
@@ -189,31 +188,25 @@ def report(rows: list[dict], out: Path) -> str:
 
 _COLORS = {"R": "tab:blue", "M": "tab:orange", "S": "tab:green", "N": "tab:purple",
            "C": "tab:red"}
-_STYLES = {"none": "-", "value": "--", "norm": ":"}
 
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
-    """Test loss over epochs, mean over seeds: colour by mode, line style by clip."""
-    plt = pyplot()
+    """Test loss over epochs, mean over seeds: a curve per mode and clip."""
     task, level = rows[0]["task"], rows[0]["level"]
-    curves: dict[tuple, list[list[float]]] = {}
+    runs: dict[tuple, list[list[float]]] = {}
     for r in rows:
-        curves.setdefault((r["mode"], r["clip"]), []).append(r["test_history"])
-    fig, ax = plt.subplots(figsize=(6, 3.8))
+        runs.setdefault((r["mode"], r["clip"]), []).append(r["test_history"])
     order = {m: i for i, m in enumerate(FLOWS)}
-    for (mode, clip), hs in sorted(curves.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
+    curves = {}
+    for (mode, clip), hs in sorted(runs.items(), key=lambda kv: (order[kv[0][0]], kv[0][1])):
         n = min(len(h) for h in hs)
         mean = np.nanmean(np.array([h[:n] for h in hs], dtype=float), axis=0)
         clip_txt = "" if clip == "none" else f", clip {clip}"
-        ax.plot(np.arange(1, n + 1), mean, color=_COLORS[mode], ls=_STYLES[clip],
-                label=f"{mode}{clip_txt} (n={len(hs)})")
-    ax.set_yscale("log")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("test loss")
-    ax.set_title(f"{task}, {TASKS[task].knob.replace('_', ' ')} {level}: test loss, mean over "
-                 "seeds", fontsize=9)
-    ax.legend(fontsize=7, ncol=2)
-    save_figure(fig, path, dpi=110)
+        curves[f"{mode}{clip_txt} (n={len(hs)})"] = [
+            {"epoch": e + 1, "test_loss": float(v)} for e, v in enumerate(mean)]
+    plot_history(path, curves, "epoch", "test_loss", "epoch", "test loss",
+                 title=f"{task}, {TASKS[task].knob.replace('_', ' ')} {level}: test loss, mean "
+                 "over seeds")
 
 
 def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:

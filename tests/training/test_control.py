@@ -1,18 +1,22 @@
 """Gradient-flow modes (R/M/S/N/C, clipping), the closed loop, the control CLI and the study."""
 
 import json
+import os
 import re
+import signal
 
 import numpy as np
 import pytest
 import torch
-from adjointsim.train import control
-from adjointsim.train.model import NeuralStepper
-from adjointsim.train.trainer import TrainConfig
-from adjointsim.train.unroll import GradientFlow, canonical, clip_update, unrolled_loss
 
 import adjointsim
 from adjointsim.cli import main as cli
+from adjointsim.run import read_history
+from adjointsim.train import control
+from adjointsim.train.checkpoint import load_checkpoint
+from adjointsim.train.model import NeuralStepper
+from adjointsim.train.trainer import TrainConfig
+from adjointsim.train.unroll import GradientFlow, canonical, clip_update, unrolled_loss
 
 
 def _setup(task="cartpole", level=None, steps=12, batch=4, seed=0):
@@ -126,9 +130,11 @@ def test_clipping():
 
 
 def test_mode_names_and_bad_options():
-    assert [canonical(m) for m in ("WIG", "NOG", "ONE", "C")] == ["R", "S", "R", "C"]
-    with pytest.raises(ValueError, match="unknown mode 'BPTT'; choose from ONE, NOG, WIG, R"):
+    assert [canonical(m) for m in ("WIG", "NOG", "C")] == ["R", "S", "C"]
+    with pytest.raises(ValueError, match="unknown gradient flow 'BPTT'; choose from WIG, NOG, R"):
         GradientFlow("BPTT")
+    with pytest.raises(ValueError, match="ONE is a schedule"):
+        GradientFlow("ONE")
     with pytest.raises(ValueError, match="unknown clip 'max'; choose from none, value, norm"):
         GradientFlow("C", clip="max")
     for mode in ("M", "C", "S", "R", "N"):  # the unrolled training takes every mode
@@ -199,22 +205,28 @@ def test_bad_inputs_name_the_problem():
     bad[1, 0, 0] = float("inf")
     with pytest.raises(ValueError, match="non-finite"):
         control.closed_loop(t, net, bad)
-    with pytest.raises(ValueError, match="poles must be one of 1, 2, 3, 4, not 5"):
+    with pytest.raises(ValueError, match="config key 'poles': 5 is not one of 1, 2, 3, 4"):
         control.ControlConfig.load(poles=5)
-    with pytest.raises(ValueError, match="target must be one of 3, 4, 5, not 2"):
+    with pytest.raises(ValueError, match="config key 'target': 2 is not one of 3, 4, 5"):
         control.ControlConfig.load(task="quantum", target=2)
-    with pytest.raises(ValueError, match="control-weight must be one of 1.0, 0.1, 0.01, 0.001"):
+    with pytest.raises(ValueError, match="'control_weight': 0.5 is not one of 1.0, 0.1, 0.01"):
         control.ControlConfig.load(task="guidance", control_weight=0.5)
-    with pytest.raises(ValueError, match="unknown task 'pendulum'; choose from cartpole"):
+    with pytest.raises(ValueError, match="'task': 'pendulum' is not one of cartpole, guidance"):
         control.ControlConfig.load(task="pendulum")
-    with pytest.raises(ValueError, match="unknown mode 'F'; choose from R, M, S, N, C"):
+    with pytest.raises(ValueError, match="'mode': 'F' is not one of R, M, S, N, C"):
         control.ControlConfig.load(mode="F")
-    with pytest.raises(ValueError, match="'epochs' must be int"):
+    with pytest.raises(ValueError, match=r"'epochs': 'ten' \(str\) is not an integer"):
         control.ControlConfig.load(epochs="ten")
-    with pytest.raises(ValueError, match="lr must be a finite number > 0, not inf"):
+    with pytest.raises(ValueError, match="'lr': inf is not a finite number > 0"):
         control.ControlConfig.load(lr=float("inf"))
-    with pytest.raises(ValueError, match=r"seed must be in 0..2\*\*63 - 1, not -1"):
+    with pytest.raises(ValueError, match=r"'seed': -1 is not an integer in \[0, 9223372036"):
         control.ControlConfig.load(seed=-1)
+    with pytest.raises(ValueError, match=r"'batch': 9 exceeds train \(8\)"):
+        control.ControlConfig.load(train=8, batch=9)
+    with pytest.raises(ValueError, match="'poles': applies to the cartpole task, not guidance"):
+        control.ControlConfig.load(task="guidance", poles=2)
+    with pytest.raises(ValueError, match=r"10000000 × 256 = 2.56e\+09 training rollouts"):
+        control.ControlConfig.load(epochs=10**7)
 
 
 def test_toml_config(tmp_path):
@@ -223,7 +235,8 @@ def test_toml_config(tmp_path):
     cfg = control.ControlConfig.load(path, seed=3)
     assert (cfg.task, cfg.level, cfg.mode, cfg.seed) == ("guidance", 0.01, "M", 3)
     path.write_text('epochs = "many"\n')
-    with pytest.raises(ValueError, match="config key 'epochs' must be int, got 'many'"):
+    with pytest.raises(ValueError, match=r"config key 'epochs' in .*c.toml: 'many' \(str\) is "
+                       "not an integer"):
         control.ControlConfig.load(path)
     path.write_text("epochs = [\n")
     with pytest.raises(ValueError, match="is not valid TOML"):
@@ -235,14 +248,14 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     args = ["control", "cartpole", "--epochs", "1", "--train", "4", "--test", "4", "--batch",
             "4", "--out", str(out), "--no-progress", "--dtype", "float64"]
     assert cli(args) == 0
-    rows = control.load_history(out / "history.csv")
-    assert len(rows) == 1 and set(rows[0]) == set(control.HISTORY_KEYS)
+    rows = read_history(out / "history.csv")
+    assert len(rows) == 1 and list(rows[0]) == list(control.HISTORY_KEYS)
     assert (out / "test_loss.png").exists() and (out / "rollout.png").exists()
     assert cli(args) == 2
     assert "holds a finished run" in capsys.readouterr().err
     # more epochs with --resume continue the same run
     assert cli([*args[:3], "2", *args[4:], "--resume"]) == 0
-    assert len(control.load_history(out / "history.csv")) == 2
+    assert len(read_history(out / "history.csv")) == 2
     # fewer epochs than the run holds: refused, and the finished run's files stay as they were
     before = (out / "result.json").read_text()
     assert cli([*args[:3], "1", *args[4:], "--resume"]) == 2
@@ -251,7 +264,7 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     # the same run under another spelling of its directory or thread count still resumes
     assert cli([*args[:3], "3", *args[4:-4], str(out) + "/", *args[-3:], "--threads", "2",
                 "--resume"]) == 0
-    assert len(control.load_history(out / "history.csv")) == 3
+    assert len(read_history(out / "history.csv")) == 3
     assert cli([*args[:3], "3", *args[4:], "--lr", "0.01", "--resume"]) == 2
     assert "differs in lr" in capsys.readouterr().err
     # stopped after the last checkpoint but before result.json: --resume writes it
@@ -259,9 +272,9 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     assert cli([*args[:3], "3", *args[4:], "--resume"]) == 0
     assert json.loads((out / "result.json").read_text())["epochs"] == 3
     assert cli(["control", "guidance", "--poles", "2"]) == 2
-    assert "--poles applies to cartpole, not guidance" in capsys.readouterr().err
-    assert cli(["control", "cartpole", "--mode", "X", "--out", str(tmp_path / "x")]) == 2
-    assert "unknown mode 'X'; choose from R, M, S, N, C" in capsys.readouterr().err
+    assert "'poles': applies to the cartpole task, not guidance" in capsys.readouterr().err
+    err = _one_line(capsys, "control", "cartpole", "--mode", "X", "--out", tmp_path / "x")
+    assert "argument --mode: invalid choice: 'X'" in err
 
 
 def test_cli_keeps_other_files_and_tells_how_to_continue(tmp_path, capsys, monkeypatch):
@@ -294,6 +307,111 @@ def test_cli_keeps_other_files_and_tells_how_to_continue(tmp_path, capsys, monke
     assert cli([*args, str(tmp_path / "stopped"), "--resume"]) == 0
 
 
+
+SMALL = ["--train", "4", "--test", "4", "--batch", "4", "--no-progress", "--dtype", "float64"]
+
+
+def _one_line(capsys, *argv):
+    assert cli([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("adjointsim control: ") and err.count("\n") == 1, err
+    return err
+
+
+def _without_seconds(rows):
+    return [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
+
+
+def test_ctrl_c_between_updates_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch):
+    """Ctrl-C inside an update is held until the update ends; the checkpoint saved there
+    (mid-epoch) resumes to the weights and history of an uninterrupted run."""
+    args = ["control", "cartpole", "--epochs", "2", "--train", "12", "--test", "4", "--batch",
+            "4", "--no-progress", "--dtype", "float64", "--out"]
+    assert cli([*args, str(tmp_path / "a")]) == 0
+    real, calls = control.closed_loop, []
+
+    def interrupted(*a, **kw):
+        calls.append(1)
+        if len(calls) == 7:  # epoch 1: updates 1-3, evaluations 4-5; epoch 2: updates 6-8
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(control, "closed_loop", interrupted)
+    assert cli([*args, str(tmp_path / "b")]) == 130
+    monkeypatch.setattr(control, "closed_loop", real)
+    state = load_checkpoint(tmp_path / "b" / "checkpoint.pt", ("state",))["state"]
+    assert (state["epoch"], state["step"], len(state["losses"])) == (1, 2, 2)
+    assert cli([*args, str(tmp_path / "b"), "--resume"]) == 0
+    a, b = (load_checkpoint(tmp_path / run / "checkpoint.pt", ("net",))["net"] for run in "ab")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    assert (_without_seconds(read_history(tmp_path / "a" / "history.csv"))
+            == _without_seconds(read_history(tmp_path / "b" / "history.csv")))
+
+
+def test_resume_needs_a_checkpoint_and_overwrite_starts_again(tmp_path, capsys):
+    out = tmp_path / "run"
+    base = ["control", "cartpole", "--epochs", "1", *SMALL]
+    err = _one_line(capsys, *base, "--out", out, "--resume")
+    assert "holds no checkpoint to continue from" in err and not out.exists()
+    assert cli([str(a) for a in [*base, "--out", out]]) == 0
+    # --overwrite discards the finished run and trains the new configuration from scratch,
+    # as in a new directory
+    assert cli([str(a) for a in [*base, "--seed", "1", "--out", out, "--overwrite"]]) == 0
+    assert cli([str(a) for a in [*base, "--seed", "1", "--out", tmp_path / "new"]]) == 0
+    assert json.loads((out / "config.json").read_text())["seed"] == 1
+    new = json.loads((tmp_path / "new" / "result.json").read_text())
+    assert json.loads((out / "result.json").read_text())["test_loss"] == new["test_loss"]
+    assert len(read_history(out / "history.csv")) == 1
+    err = _one_line(capsys, *base, "--out", out, "--overwrite", "--resume")  # one or the other
+    assert "not allowed with argument" in err
+    # somebody else's files are not discarded
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "config.json").write_text('{"owner": "someone else"}')
+    err = _one_line(capsys, *base, "--out", theirs, "--overwrite")
+    assert "holds another run or other files" in err
+    assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
+
+
+def test_config_file_names_the_wrong_key(tmp_path, capsys):
+    path = tmp_path / "c.toml"
+    path.write_text('task = "cartpole"\nepochs = "ten"\n')
+    err = _one_line(capsys, "control", "cartpole", "--config", path, "--out", tmp_path / "r")
+    assert "config key 'epochs'" in err and "'ten' (str) is not an integer" in err
+    path.write_text("lr = 0.01\nbatchsize = 4\n")
+    err = _one_line(capsys, "control", "cartpole", "--config", path, "--out", tmp_path / "r")
+    assert "unknown config option 'batchsize'" in err
+
+
+def test_help_lists_the_choices(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli(["control", "--help"])
+    assert e.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for shown in ("{cartpole,guidance,quantum}", "--mode {R,M,S,N,C}",
+                  "--clip {none,value,norm}", "--poles {1,2,3,4}", "--resume", "--overwrite",
+                  "--config FILE.toml", "--seed", "--threads", "--no-progress"):
+        assert shown in text, shown
+
+
+def test_absurd_sizes_are_refused_before_anything_is_drawn(tmp_path, capsys, monkeypatch):
+    def never(*a, **kw):
+        raise AssertionError("allocated")
+
+    monkeypatch.setattr(control, "initial_states", never)
+    monkeypatch.setattr(control.Task, "initial_states", never)
+    out = tmp_path / "big"
+    err = _one_line(capsys, "control", "cartpole", "--train", "1000000000", "--out", out)
+    assert "'train'" in err and ("GiB of memory" in err or "training rollouts" in err)
+    err = _one_line(capsys, "control", "quantum", "--epochs", "1000000", "--out", out)
+    assert "1000000 × 256 = 2.56e+08 training rollouts of 128 steps" in err
+    monkeypatch.setattr(control, "physical_memory", lambda: 2**30)
+    err = _one_line(capsys, "control", "quantum", "--train", "100000", "--out", out)
+    assert "need about 1.9 GiB of memory" in err and "this machine's 1.0 GiB" in err
+    assert not out.exists()
+
+
 def test_study_grids():
     from adjointsim.train.studies import stablebptt
 
@@ -309,9 +427,8 @@ def test_study_grids():
 
 
 def test_tiny_study_end_to_end(tmp_path):
-    from adjointsim.train.studies import load_all
-
     from adjointsim import runner
+    from adjointsim.train.studies import load_all
 
     load_all()
     rows = runner.run("stablebptt", tmp_path, "tiny", None, cluster="none", progress=False)
