@@ -23,6 +23,7 @@ import difflib
 import io
 import json
 import math
+import os
 import tomllib
 import types
 import typing
@@ -321,3 +322,24 @@ def discard(out: Path, patterns: Iterable[str]) -> None:
     for pattern in ("config.json", "checkpoint.pt", "result.json", *patterns):
         for old in out.glob(pattern):
             old.unlink()
+
+
+def physical_memory() -> int | None:
+    """This machine's memory in bytes (None where the system does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory(need: int, what: str, fix: str) -> None:
+    """The size guard of every command: refuse a run that needs more than this machine's
+    memory before anything is allocated, saying how much ``what`` would need and ``fix``."""
+    have = physical_memory()
+    if have is not None and need > have:
+        raise UserError(f"{what} need about {gib(need)} of memory, more than this machine's "
+                        f"{gib(have)}; {fix}")
+
+
+def gib(n: float) -> str:
+    return f"{n / 2**30:,.1f} GiB"

@@ -49,9 +49,9 @@ from adjointsim.run import (
     SEEDS,
     Config,
     Interval,
+    check_memory,
     differing,
     discard,
-    physical_memory,
     plot_history,
     read_result,
     refuse_foreign,
@@ -293,13 +293,10 @@ class ControlConfig(Config):
                             f"({self.train}), the initial states it is drawn from")
         task = get_task(self.task, self.level)
         need = task.memory(self.train, self.test, self.batch, DTYPES[self.dtype].itemsize)
-        have = physical_memory()
-        if have is not None and need > have:
-            raise UserError(f"config keys 'train', 'test' and 'batch'{where}: {self.train} "
-                            f"training and {self.test} test initial states in batches of "
-                            f"{self.batch} need about {need / 2**30:,.1f} GiB of memory (the "
-                            "states, a rollout over all of them at once, an update's tape), "
-                            f"more than this machine's {have / 2**30:,.1f} GiB; use fewer")
+        check_memory(need, f"config keys 'train', 'test' and 'batch'{where}: {self.train} "
+                     f"training and {self.test} test initial states in batches of "
+                     f"{self.batch} (the states, a rollout over all of them at once, an "
+                     "update's tape)", "use fewer")
         if self.epochs * self.train > MAX_ROLLOUTS:
             raise UserError(f"config keys 'epochs' and 'train'{where}: {self.epochs} × "
                             f"{self.train} = {self.epochs * self.train:.3g} training rollouts "

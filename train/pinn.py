@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -50,6 +49,7 @@ from adjointsim.run import (
     SEEDS,
     Config,
     Interval,
+    check_memory,
     discard,
     finished_result,
     plot_history,
@@ -147,12 +147,9 @@ class PinnConfig(Config):
                             "analytic weights; choose uniform, inverse-dirichlet or max-avg")
         self.width = self.width or NETWORKS[self.problem][1]
         self.epochs = self.epochs or EPOCHS[self.problem]
-        need, have = memory_needed(self), physical_memory()
-        if have is not None and need > have:
-            raise UserError(f"width {self.width}, depth {self.depth}, collocation "
-                            f"{self.collocation} and edge_points {self.edge_points}{where} need "
-                            f"about {_gib(need)} of memory to train, this machine has "
-                            f"{_gib(have)}; choose smaller ones")
+        check_memory(memory_needed(self), f"width {self.width}, depth {self.depth}, collocation "
+                     f"{self.collocation} and edge_points {self.edge_points}{where}",
+                     "choose smaller ones")
 
 
 def memory_needed(cfg: PinnConfig) -> int:
@@ -165,18 +162,6 @@ def memory_needed(cfg: PinnConfig) -> int:
     per_col, per_edge = problem.floats_per_unit
     activations = (per_col * cfg.collocation + per_edge * cfg.edge_points) * w * d
     return int(4 * ((4 + len(problem.terms)) * params + activations))
-
-
-def physical_memory() -> int | None:
-    """The machine's memory in bytes (None where the system does not say)."""
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):
-        return None
-
-
-def _gib(n: int) -> str:
-    return f"{n / 2**30:,.1f} GiB"
 
 
 # ----------------------------------------------------------------------------- the problem

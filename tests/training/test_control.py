@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import adjointsim
+import adjointsim.run
 from adjointsim.cli import main as cli
 from adjointsim.run import read_history
 from adjointsim.train import control
@@ -406,7 +407,7 @@ def test_absurd_sizes_are_refused_before_anything_is_drawn(tmp_path, capsys, mon
     assert "'train'" in err and ("GiB of memory" in err or "training rollouts" in err)
     err = _one_line(capsys, "control", "quantum", "--epochs", "1000000", "--out", out)
     assert "1000000 × 256 = 2.56e+08 training rollouts of 128 steps" in err
-    monkeypatch.setattr(control, "physical_memory", lambda: 2**30)
+    monkeypatch.setattr(adjointsim.run, "physical_memory", lambda: 2**30)
     err = _one_line(capsys, "control", "quantum", "--train", "100000", "--out", out)
     assert "need about 1.9 GiB of memory" in err and "this machine's 1.0 GiB" in err
     assert not out.exists()

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+import adjointsim.run
 from adjointsim.cli import main as cli
 from adjointsim.errors import RunExists
 from adjointsim.run import read_history
@@ -254,14 +255,14 @@ def test_help_says_what_0_means_and_lists_the_choices(capsys, monkeypatch):
     (["--edge-points", "1000000000"],
      "config key 'edge_points': 1000000000 is not an integer in [1, 100000]"),
     (["--depth", "100000"], "config key 'depth': 100000 is not an integer in [1, 100]"),
-    (["--width", "4096", "--depth", "100"], "GiB of memory to train, this machine has 16.0 GiB"),
+    (["--width", "4096", "--depth", "100"], "GiB of memory, more than this machine's 16.0 GiB"),
 ])
 def test_absurd_sizes_are_refused_before_anything_is_allocated(args, message, capsys, tmp_path,
                                                                monkeypatch):
     def allocate(*args, **kwargs):
         raise AssertionError("allocated before the sizes were checked")
 
-    monkeypatch.setattr(pinn, "physical_memory", lambda: 16 * 2**30)
+    monkeypatch.setattr(adjointsim.run, "physical_memory", lambda: 16 * 2**30)
     monkeypatch.setattr(pinn, "MLP", allocate)
     monkeypatch.setattr(pinn.Poisson, "__init__", allocate)
     assert cli(["pinn", "poisson", *args, "--out", str(tmp_path / "x")]) == 2
