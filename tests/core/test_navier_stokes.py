@@ -237,17 +237,6 @@ def test_bad_input_is_rejected_with_the_reason():
         stepper.rollout(stepper.random_state(np.random.default_rng(0)), 2, params={"nu": -1.0})
 
 
-@pytest.mark.parametrize("name", sorted(ROLLOUTS))
-def test_float32_stays_float32(name):
-    stepper = get(name).default()
-    u = stepper.random_state(np.random.default_rng(0), 2, np.float32)
-    out = stepper.rollout(u, 5)
-    assert out.dtype == np.float32
-    g = stepper.vjp(u, 5, np.ones_like(u), wrt_params=True)
-    assert g.state.dtype == np.float32
-    np.testing.assert_allclose(out, stepper.rollout(u.astype(np.float64), 5), rtol=0, atol=1e-4)
-
-
 REFERENCE_SCENES = [("advdiff2d-etdrk4", {})] + [
     (f"ns2d-etdrk{order}", dict(dealias=dealias, drag=0.2, forcing_amplitude=0.5))
     for order in ORDERS
