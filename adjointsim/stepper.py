@@ -45,6 +45,8 @@ from typing import Any, ClassVar
 import numba
 import numpy as np
 
+from . import validate
+
 FLOAT_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 #: smallest ``checkpoint`` budget: u_0 and the two-state buffer the forward kernel advances in
 MIN_CHECKPOINT = 3
@@ -63,7 +65,9 @@ class NonFiniteStateError(FloatingPointError):
 
 
 class NonFiniteInputError(ValueError):
-    """A state or controls handed to a solver already hold NaN or Inf."""
+    """An input handed to a solver (a state, controls, a parameter, a cotangent, a stored
+    trajectory) already holds NaN or Inf; the message names the input and, where it has steps,
+    the first bad one."""
 
 
 @dataclass(frozen=True)
@@ -109,12 +113,15 @@ class Stepper:
         g = stepper.vjp_prepared(u0, n, controls, params, cot, cmap, trajectory=traj)
 
     :meth:`prepare` (or its parts :meth:`check_state`, :meth:`check_controls`,
-    :meth:`param_array`, and :meth:`check_cotangents` for a vjp) returns the arrays the fast
-    path takes; :meth:`rollout_prepared` and :meth:`vjp_prepared` check nothing about them, so
-    pass only what those returned (or arrays of the same form, such as their complex-step
-    perturbations), and never write to them while a result still depends on them. The fast
-    path gives bit for bit the results of the checked one, and a rollout that blows up still
-    raises :class:`NonFiniteStateError`.
+    :meth:`param_array`, and :meth:`check_cotangents` and :meth:`check_trajectory` for a vjp)
+    returns the arrays the fast path takes; :meth:`rollout_prepared` and :meth:`vjp_prepared`
+    check nothing about them, by design: they take what the checks refuse, such as the
+    complex-step perturbations of the verification harness, and a closed loop pays for no check
+    twice. So pass only what the checks returned (or arrays of the same form), and never write
+    to them while a result still depends on them. The fast path gives bit for bit the results
+    of the checked one; a rollout that blows up still raises :class:`NonFiniteStateError`, and a
+    reverse sweep whose result is not finite a :class:`FloatingPointError` (or, when an input
+    it was handed is not finite, a :class:`NonFiniteInputError` naming it).
 
     A stepper keeps no per-call state (only caches: coefficient tables, a reusable tape
     buffer), so one stepper serves nested sweeps and several threads at once.
@@ -255,17 +262,16 @@ class Stepper:
         ``n = 0`` returns the cotangent of u_0 (and zero control and parameter cotangents); an
         empty batch (B = 0) returns empty cotangents and zero parameter cotangents. Neither
         calls the kernels.
+
+        Every input is checked first (the state, the controls, the parameters, each cotangent,
+        the trajectory): a NaN or Inf in one raises :class:`NonFiniteInputError` naming it and
+        its first bad step, as the sweep would otherwise return NaN or, through a trajectory
+        that a linear scheme's state cotangent never reads, a silently wrong parameter gradient.
         """
         u0, n, ctrl, p = self.prepare(u0, n, controls, params)
         cot, cmap = self.check_cotangents(cotangents, n, u0)
         if trajectory is not None:
-            trajectory = np.asarray(trajectory)
-            if trajectory.shape != (n + 1, *u0.shape) or trajectory.dtype != u0.dtype:
-                raise ValueError(
-                    f"{self.name}: trajectory has shape {trajectory.shape} and dtype "
-                    f"{trajectory.dtype}; expected {(n + 1, *u0.shape)} and {u0.dtype}, "
-                    'as returned by rollout(..., keep="all")'
-                )
+            trajectory = self.check_trajectory(trajectory, n, u0)
         g = self.vjp_prepared(u0, n, ctrl, p, cot, cmap, wrt_params, checkpoint, trajectory)
         return g if controls is not None else Cotangents(g.state, None, g.params)
 
@@ -284,7 +290,7 @@ class Stepper:
         with a zero-length first axis (an uncontrolled rollout); ``params`` becomes the
         parameter array of :meth:`param_array`, in the state's dtype."""
         u0 = self.check_state(u0, "u0")
-        n = _check_steps(n)
+        n = validate.count(self.name, "n", n, why="the number of steps")
         return u0, n, self.check_controls(controls, n, u0), self.param_array(params, u0.dtype)
 
     def param_array(
@@ -310,12 +316,11 @@ class Stepper:
                     f"{self.name} has no parameter(s) {sorted(unknown)}; "
                     f"its parameters are {list(self.param_names)}"
                 )
-            values = np.array(
-                [params.get(k, v) for k, v in zip(self.param_names, self.param_values)],
-                dtype=np.float64,
+            values = self._real_params(
+                [params.get(k, v) for k, v in zip(self.param_names, self.param_values)]
             )
         else:
-            values = np.asarray(params, dtype=np.float64)
+            values = self._real_params(params)
             if values.shape != (len(self.param_names),):
                 raise ValueError(
                     f"{self.name} takes {len(self.param_names)} parameter(s) "
@@ -324,12 +329,27 @@ class Stepper:
         if not np.all(np.isfinite(values)):
             bad = ", ".join(f"{k} = {v!r}" for k, v in zip(self.param_names, values.tolist())
                             if not np.isfinite(v))
-            raise ValueError(f"{self.name}: parameters must be finite, got {bad}")
+            raise NonFiniteInputError(f"{self.name}: parameters must be finite, got {bad}")
         self.check_params(values)
         out = np.ascontiguousarray(values, dtype=dtype)
         if params is None:
             cache[dtype] = (self.param_values, out)
         return out
+
+    def _real_params(self, params: Any) -> np.ndarray:
+        """``params`` as float64, refusing complex values, which a cast would silently drop the
+        imaginary part of (the complex-step checks pass theirs to the fast path instead)."""
+        values = np.asarray(params)
+        if values.dtype.kind == "c":
+            bad = ", ".join(
+                f"{k} = {v!r}" for k, v in zip(self.param_names, np.ravel(values).tolist())
+                if v.imag
+            ) or f"values of dtype {values.dtype}"
+            raise TypeError(
+                f"{self.name}: parameters must be real numbers, got {bad}; "
+                "pass the real part if that is what you mean"
+            )
+        return values.astype(np.float64, copy=False)
 
     def check_state(self, u: np.ndarray, what: str = "u0") -> np.ndarray:
         """``u`` as a C-contiguous float32 or float64 state of shape (B, C, *grid), after
@@ -376,8 +396,35 @@ class Stepper:
                 "cast them to the state's dtype"
             )
         if not _all_finite(c):
-            raise NonFiniteInputError(f"{self.name}: controls contain non-finite values")
+            raise NonFiniteInputError(
+                f"{self.name}: controls hold a non-finite value at {_first_bad(c, n - 1)}"
+            )
         return np.ascontiguousarray(c)
+
+    def check_trajectory(self, trajectory: np.ndarray, n: int, u0: np.ndarray) -> np.ndarray:
+        """The stored states u_0 .. u_n of an ``n``-step rollout from the checked state ``u0``
+        (what ``rollout(..., keep="all")`` returns), checked: shape (n + 1, B, C, *grid), the
+        state's dtype, finite."""
+        t = np.asarray(trajectory)
+        expected = (n + 1, *u0.shape)
+        if t.shape != expected:
+            raise ValueError(
+                f"{self.name}: trajectory has shape {t.shape}; expected {expected}, the "
+                f"{n + 1} states u_0 .. u_{n} that rollout(..., keep=\"all\") returns for "
+                "the same inputs"
+            )
+        if t.dtype != u0.dtype:
+            raise TypeError(
+                f"{self.name}: trajectory has dtype {t.dtype} but the state is {u0.dtype}; "
+                'pass the rollout(..., keep="all") of this state'
+            )
+        if not _all_finite(t):
+            raise NonFiniteInputError(
+                f"{self.name}: trajectory holds a non-finite value at {_first_bad(t, n)}; "
+                'no rollout returns one: pass rollout(..., keep="all") of the same inputs, or '
+                "no trajectory to have the states recomputed"
+            )
+        return t
 
     def check_cotangents(
         self, cotangents: np.ndarray | Mapping[int, np.ndarray], n: int, u0: np.ndarray
@@ -390,7 +437,7 @@ class Stepper:
             rows: dict[int, np.ndarray] = {}
             for key, value in cotangents.items():
                 k = _cotangent_step(key, n)
-                a = self._cotangent(value, u0.shape, u0.dtype, f"the cotangent of step {key!r}")
+                a = self._cotangent(value, u0.shape, u0.dtype, k, key)
                 rows[k] = rows[k] + a if k in rows else a  # keys naming one step add up
             steps = sorted(rows)
             cot = np.zeros((len(steps), *u0.shape), dtype=u0.dtype)
@@ -399,10 +446,10 @@ class Stepper:
         else:
             c = np.asarray(cotangents)
             if c.shape == u0.shape:
-                steps, cot = [n], self._cotangent(c, c.shape, u0.dtype, "the cotangent")[None]
+                steps, cot = [n], self._cotangent(c, c.shape, u0.dtype, n)[None]
             elif c.shape == (n + 1, *u0.shape):
                 steps = list(range(n + 1))
-                cot = self._cotangent(c, c.shape, u0.dtype, "the cotangents")
+                cot = self._cotangent(c, c.shape, u0.dtype)
             else:
                 raise ValueError(
                     f"{self.name}: cotangents have shape {c.shape}; expected {u0.shape} "
@@ -413,16 +460,29 @@ class Stepper:
         cmap[steps] = np.arange(len(steps))
         return np.ascontiguousarray(cot), cmap
 
-    def _cotangent(self, value: Any, shape: tuple, dtype: np.dtype, what: str) -> np.ndarray:
-        """``value`` as a finite real array of ``shape``, in the state's ``dtype``."""
+    def _cotangent(
+        self, value: Any, shape: tuple, dtype: np.dtype, step: int | None = None, key: Any = None
+    ) -> np.ndarray:
+        """``value`` as a finite real array of ``shape``, in the state's ``dtype``: the cotangent
+        of u_step (given under ``key``, if any), or, with ``step`` None, the stacked cotangents
+        of u_0 .. u_n. Errors name it; their words are only put together on a failure."""
         a = np.asarray(value)
         if a.shape != shape:
+            what = _cotangent_name(step, key)
             raise ValueError(f"{self.name}: {what} has shape {a.shape}; expected {shape}")
         if a.dtype.kind not in "iuf":
+            what = _cotangent_name(step, key)
             raise TypeError(f"{self.name}: {what} has dtype {a.dtype}; expected a real array")
         a = a.astype(dtype, copy=False)
         if not _all_finite(a):
-            raise ValueError(f"{self.name}: {what} has non-finite values")
+            if step is None:
+                step = int(np.argmin(np.isfinite(a).reshape(a.shape[0], -1).all(axis=1)))
+                a = a[step]
+            bad = np.unique(np.nonzero(~np.isfinite(a))[0]).tolist()
+            raise NonFiniteInputError(
+                f"{self.name}: {_cotangent_name(step, key)} has non-finite values in batch "
+                f"element(s) {bad}"
+            )
         return a
 
     # ----------------------------------------------------------------- ... then run fast
@@ -466,6 +526,9 @@ class Stepper:
         ``trajectory``: u_0 .. u_{n-1} (or more) of the rollout of these inputs, e.g. from
         ``rollout_prepared(..., keep="all")``. The control cotangents come back as an array
         even for an uncontrolled rollout (then with a zero-length first axis).
+
+        Only the result is checked: a state or parameter cotangent that is not finite raises
+        (naming the trajectory or the cotangents when one of them holds the NaN or Inf).
         """
         if checkpoint is not None and (
             isinstance(checkpoint, bool)
@@ -473,8 +536,8 @@ class Stepper:
             or checkpoint < MIN_CHECKPOINT
         ):
             raise ValueError(
-                f"checkpoint must be an integer of at least {MIN_CHECKPOINT} stored states "
-                f"(u_0 and the two-state buffer the forward kernel advances in), not "
+                f"{self.name}: checkpoint must be an integer of at least {MIN_CHECKPOINT} "
+                "stored states (u_0 and the two-state buffer the forward kernel advances in), not "
                 f"{checkpoint!r}; pass None to keep every state"
             )
         dtype = np.result_type(u0, params, cotangents)
@@ -491,12 +554,10 @@ class Stepper:
                 _AdjointSweep(
                     self, controls, params, cotangents, cmap, ubar, cbar, pbar, wrt_params
                 ).reverse(u0.astype(dtype, copy=False), n, budget)
-        if not _all_finite(ubar):
-            self.rollout_prepared(u0, n, controls, params)
-            raise FloatingPointError(
-                f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
-                "stayed finite; the cotangents or the rollout length are too large"
-            )
+        # The parameter cotangents too: a linear scheme's state cotangent never reads the
+        # states, so a NaN in a trajectory shows only there.
+        if not _all_finite(ubar) or (wrt_params and not _all_finite(pbar)):
+            self._raise_nonfinite_sweep(u0, n, controls, params, cotangents, trajectory)
         return Cotangents(
             state=ubar,
             controls=cbar,
@@ -515,6 +576,32 @@ class Stepper:
         if n and u0.shape[0]:  # zero steps or an empty batch: nothing for the kernels to do
             self._forward(states, n, ctrl, p)
         return states
+
+    def _raise_nonfinite_sweep(
+        self,
+        u0: np.ndarray,
+        n: int,
+        ctrl: np.ndarray,
+        p: np.ndarray,
+        cot: np.ndarray,
+        trajectory: np.ndarray | None,
+    ) -> None:
+        """Say why a reverse sweep of the fast path came out non-finite, and raise."""
+        if trajectory is not None and not _all_finite(trajectory[:n]):
+            raise NonFiniteInputError(
+                f"{self.name}: the trajectory handed to vjp_prepared holds a non-finite value "
+                f"at {_first_bad(trajectory[:n], n - 1)}"
+            )
+        if not _all_finite(cot):
+            raise NonFiniteInputError(
+                f"{self.name}: the cotangents handed to vjp_prepared hold a non-finite value "
+                f"at {_first_bad(cot, len(cot) - 1, 'row')}"
+            )
+        self.rollout_prepared(u0, n, ctrl, p)  # raises if the forward rollout blows up
+        raise FloatingPointError(
+            f"{self.name}: the adjoint sweep became non-finite although the forward rollout "
+            "stayed finite; the cotangents or the rollout length are too large"
+        )
 
     def _raise_nonfinite(
         self,
@@ -676,7 +763,19 @@ def _cotangent_step(key: Any, n: int) -> int:
     return k % (n + 1)
 
 
-def _check_steps(n: int) -> int:
-    if int(n) != n or n < 0:
-        raise ValueError(f"the number of steps must be a non-negative integer, not {n!r}")
-    return int(n)
+def _cotangent_name(step: int | None, key: Any) -> str:
+    """How an error names the cotangent of u_step given under ``key`` (None: the stacked
+    cotangents, or a key that is the step itself)."""
+    if step is None:
+        return "the cotangents"
+    given = step if key is None else operator.index(key)
+    return f"the cotangent of step {step}" + (f" (key {given})" if given != step else "")
+
+
+def _first_bad(a: np.ndarray, last: int, axis: str = "step") -> str:
+    """Where array ``a`` of shape (steps, B, ...), known to hold NaN or Inf, first does: its
+    first non-finite step (of 0 .. ``last``; ``axis`` names them) and that step's non-finite
+    batch elements."""
+    bad = ~np.isfinite(a.reshape(a.shape[0], a.shape[1], -1)).all(axis=2)
+    k = int(np.argmax(bad.any(axis=1)))
+    return f"{axis} {k} (of 0..{last}), in batch element(s) {np.nonzero(bad[k])[0].tolist()}"

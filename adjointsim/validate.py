@@ -20,18 +20,20 @@ the constraints that also apply to parameters overridden per call::
     g = validate.array(self.name, "forcing", forcing, (1, n))
 
 Numbers are ``int``/``float``/NumPy real scalars (or 0-d arrays), never ``bool`` or ``str``;
-integers are ``int``/NumPy integers, never floats (``32.0`` is a TypeError: say ``32``).
+integers are ``int``/NumPy integers, never floats (``32.0`` is a TypeError: say ``32``). A count
+(:func:`count`, such as the steps of a rollout) also takes a float with an integer value.
 """
 
 from __future__ import annotations
 
 import numbers
+import operator
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-__all__ = ["array", "choice", "flag", "integer", "number"]
+__all__ = ["array", "choice", "count", "flag", "integer", "number"]
 
 
 def _show(value: Any) -> str:
@@ -111,6 +113,29 @@ def integer(
         bounds = _bounds(None, ge, None, le)
         wanted = ("an even integer" if even else "an integer") + (f" {bounds}" if bounds else "")
         raise _fail(solver, arg, wanted, k, why)
+    return k
+
+
+def count(solver: str, arg: str, value: Any, *, why: str = "") -> int:
+    """``value`` as an int ≥ 0: an ``int``, a NumPy integer, anything with ``__index__``, or a
+    float with an integer value (``3.0``: a count is often computed, say as ``T / dt``). Not a
+    ``bool``, NaN or a fraction."""
+    if type(value) is int:  # the common case, spared the ABC checks (a rollout counts its steps)
+        k = value
+    elif isinstance(value, np.ndarray) and value.ndim == 0:
+        return count(solver, arg, value[()], why=why)
+    elif isinstance(value, (bool, np.bool_)):
+        raise _wrong_type(solver, arg, "a non-negative integer", value)
+    elif isinstance(value, numbers.Real) and not isinstance(value, numbers.Integral):
+        x = float(value)
+        k = int(x) if x.is_integer() else -1
+    else:
+        try:
+            k = operator.index(value)
+        except TypeError:
+            raise _wrong_type(solver, arg, "a non-negative integer", value) from None
+    if k < 0:
+        raise _fail(solver, arg, "a non-negative integer", value, why)
     return k
 
 

@@ -188,7 +188,8 @@ class CartPole(Stepper):
 
     @classmethod
     def benchmark_scene(cls, n: int) -> Stepper:
-        return cls(poles=min(4, max(1, n)))
+        # A size knob, not the pole count: any integer picks the nearest of 1 .. 4 poles.
+        return cls(poles=min(4, max(1, validate.integer(cls.name, "n", n))))
 
     def random_state(
         self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64

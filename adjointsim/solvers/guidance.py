@@ -259,7 +259,8 @@ class Guidance(Stepper):
 
     @classmethod
     def benchmark_scene(cls, n: int) -> Stepper:
-        return cls(evaders=max(1, n))
+        # A size knob: any integer below 1 still gives one evader.
+        return cls(evaders=max(1, validate.integer(cls.name, "n", n)))
 
     def random_state(
         self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 import adjointsim
 from adjointsim import registry
-from adjointsim.stepper import MIN_CHECKPOINT
+from adjointsim.stepper import MIN_CHECKPOINT, NonFiniteInputError
 from adjointsim.strategies import scenes
 
 NAMES = registry.names()
@@ -383,3 +383,31 @@ def test_float32_stays_float32_and_agrees_with_float64(name):
         assert np.abs(a - b).max() <= 2e-3 * max(np.abs(b).max(), 1.0), name
     for k, v in g64.params.items():
         assert abs(g32.params[k] - v) <= 2e-3 * max(abs(v), 1.0), (name, k)
+
+
+# ------------------------------------------------------------ a non-finite stored trajectory
+@pytest.mark.parametrize("name", NAMES)
+def test_defect_a_non_finite_trajectory_is_named_not_reversed(name):
+    """A NaN in a stored trajectory gave NaN parameter cotangents without an error (the linear
+    schemes' state cotangent never reads the states) or an error blaming the cotangents."""
+    stepper = adjointsim.get(name).default()
+    rng = np.random.default_rng(9)
+    n = 5
+    u = stepper.random_state(rng, 2)
+    ctrl = None if stepper.control_shape is None else stepper.random_controls(rng, n, 2)
+    traj = stepper.rollout(u, n, ctrl, keep="all")
+    traj[3, 1].flat[0] = np.nan
+    w = stepper.random_state(rng, 2)
+    with pytest.raises(NonFiniteInputError, match=r"trajectory holds a non-finite value at "
+                                                  r"step 3 \(of 0\.\.5\), in batch element\(s\) "
+                                                  r"\[1\]"):
+        stepper.vjp(u, n, w, ctrl, wrt_params=True, trajectory=traj)
+    # The fast path checks no input, but never returns a non-finite gradient either.
+    u0, n, c, p = stepper.prepare(u, n, ctrl)
+    try:
+        g = stepper.vjp_prepared(u0, n, c, p, *stepper.check_cotangents(w, n, u0),
+                                 wrt_params=True, trajectory=traj)
+    except NonFiniteInputError as e:
+        assert "trajectory handed to vjp_prepared holds a non-finite value at step 3" in str(e)
+    else:
+        assert np.isfinite(g.state).all() and np.isfinite(list(g.params.values())).all()

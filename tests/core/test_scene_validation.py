@@ -340,3 +340,28 @@ def test_presets_are_valid_and_check_their_own_arguments():
         if "n" in inspect.signature(cls.__init__).parameters:
             with pytest.raises(TypeError, match=r"\bn must be an integer"):
                 cls.benchmark_scene(16.0)
+
+
+# ------------------------------------------------------------------ counts and size knobs
+def test_count_takes_whole_numbers_and_names_what_it_refuses():
+    for value in (0, 7, np.int32(7), np.array(7), 7.0, np.float64(7.0)):
+        k = validate.count("s", "n", value)
+        assert k == int(value) and type(k) is int
+    for value in (-1, 2.5, math.nan, math.inf, -3.0):
+        with pytest.raises(ValueError, match=r"^s: n must be a non-negative integer, got "
+                                             r"\S+ \(the steps\)$"):
+            validate.count("s", "n", value, why="the steps")
+    for value in (None, True, "3", 1j, [3]):
+        with pytest.raises(TypeError, match=r"^s: n must be a non-negative integer, got \w+ "):
+            validate.count("s", "n", value)
+
+
+@pytest.mark.parametrize("name", ["cartpole", "guidance"])
+def test_benchmark_size_knob_is_an_integer(name):
+    """These scenes map the benchmarks' size knob onto a count of bodies: NaN went through."""
+    cls = adjointsim.get(name)
+    for value in (math.nan, None, 2.5, True, 16.0):
+        with pytest.raises(TypeError, match=rf"^{name}: n must be an integer, got \w+ "):
+            cls.benchmark_scene(value)
+    for value in (0, 1, 3, 64):
+        cls.benchmark_scene(value)

@@ -5,6 +5,7 @@ import json
 import re
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -409,3 +410,52 @@ def test_ci_runs_the_readme_commands():
     assert commands, "no commands in .ci/run"
     for line in commands:
         assert line in readme, f".ci/run runs {line!r}, which the README does not show"
+
+
+# ------------------------------------------------------------------ step counts, parameters
+def test_the_step_count_is_checked_with_the_solver_named():
+    s = FTCS(n=16)
+    u = np.zeros((2, 1, 16))
+    for bad in (np.nan, np.inf, 2.5, -1):
+        with pytest.raises(ValueError, match=r"^diffusion1d-ftcs: n must be a non-negative "
+                                             r"integer, got .* \(the number of steps\)$"):
+            s.rollout(u, bad)
+    for bad in (None, True, np.bool_(False), "3", 1 + 0j):
+        with pytest.raises(TypeError, match=r"^diffusion1d-ftcs: n must be a non-negative "
+                                            r"integer, got \w+ "):
+            s.vjp(u, bad, u)
+    for whole in (3, np.int64(3), np.array(3), 3.0, np.float32(3.0)):
+        u0, n, _, _ = s.prepare(u, whole)
+        assert n == 3 and type(n) is int
+
+
+def test_complex_parameters_are_refused_where_a_cast_would_drop_their_imaginary_part():
+    s = FTCS(n=16)
+    u = s.random_state(np.random.default_rng(7), 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused, not cast with a ComplexWarning
+        with pytest.raises(TypeError, match=r"parameters must be real numbers, got nu = "
+                                            r"\(0\.1\+2j\)"):
+            s.rollout(u, 2, params={"nu": 0.1 + 2j})
+        with pytest.raises(TypeError, match="parameters must be real numbers"):
+            s.vjp(u, 2, u, params=np.array([0.1 + 0j]), wrt_params=True)
+        with pytest.raises(TypeError, match="parameters must be real numbers"):
+            s.prepare(u, 2, params=[np.complex128(0.1)])
+        # The checks' complex-step perturbation of a parameter takes the fast path, which runs it.
+        u0, n, c, p = s.prepare(u, 2)
+        z = s.rollout_prepared(u0 + 0j, n, c + 0j, p + 1e-30j)
+    assert same_bits(z.real.copy(), s.rollout(u, 2))
+
+
+def test_a_trajectory_of_the_wrong_shape_or_dtype_says_what_is_expected():
+    s = FTCS(n=16)
+    u = s.random_state(np.random.default_rng(8), 2)
+    traj = s.rollout(u, 5, keep="all")
+    with pytest.raises(ValueError, match=r"trajectory has shape \(5, 2, 1, 16\); expected "
+                                         r"\(6, 2, 1, 16\), the 6 states u_0 \.\. u_5"):
+        s.vjp(u, 5, u, trajectory=traj[:5])
+    for wrong in (traj.astype(np.float32), traj + 0j):
+        with pytest.raises(TypeError, match=rf"trajectory has dtype {wrong.dtype} but the "
+                                            "state is float64"):
+            s.vjp(u, 5, u, trajectory=wrong)
+    assert same_bits(s.vjp(u, 5, u, trajectory=list(traj)).state, s.vjp(u, 5, u).state)
