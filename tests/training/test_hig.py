@@ -267,18 +267,23 @@ def test_quantum_targets_are_normalised_and_the_loss_is_an_infidelity():
     assert torch.allclose(p.loss(-t, t), torch.zeros(len(t), dtype=t.dtype), atol=1e-12)
 
 
-def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch):
-    cfg = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=6)
+def _interrupt_step(monkeypatch, after: int) -> None:
+    """Ctrl-C inside the update after ``after`` timed ones (the warm-up is the first call)."""
     calls = {"n": 0}
     real_step = HalfInverseGradients.step
 
     def interrupted(self, *a):
         calls["n"] += 1
-        if calls["n"] == 4:  # the warm-up is call 1: interrupt after 2 timed updates
+        if calls["n"] == after + 2:
             raise KeyboardInterrupt
         return real_step(self, *a)
 
     monkeypatch.setattr(HalfInverseGradients, "step", interrupted)
+
+
+def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch):
+    cfg = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=6)
+    _interrupt_step(monkeypatch, after=2)
     with pytest.raises(KeyboardInterrupt):
         train_run(cfg, tmp_path, progress=False)
     assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / "result.json").exists()
@@ -398,16 +403,7 @@ def test_cli_help_lists_the_choices(capsys):
 def test_cli_ctrl_c_leaves_a_checkpoint_to_resume(tmp_path, capsys, monkeypatch):
     from adjointsim.cli import main
 
-    calls = {"n": 0}
-    real_step = HalfInverseGradients.step
-
-    def interrupted(self, *a):
-        calls["n"] += 1
-        if calls["n"] == 3:  # the warm-up is call 1: interrupt after 1 timed update
-            raise KeyboardInterrupt
-        return real_step(self, *a)
-
-    monkeypatch.setattr(HalfInverseGradients, "step", interrupted)
+    _interrupt_step(monkeypatch, after=1)
     out = tmp_path / "run"
     args = ["hig", "chain", "--size", "tiny", "--max-updates", "3", "--out", str(out),
             "--no-progress"]
