@@ -333,7 +333,7 @@ ROLLBACK_WINDOW = 100
 def _guard(factor: float, history: list[dict], state: dict, model, optimizer, best):
     """The divergence guard: after each window, remember the weights of the best window so far,
     or, when the window's median loss exceeds ``factor`` × the best, restore them and halve the
-    learning rate. Unrolled NOG training can run away late in training (README, "Unrolling
+    learning rate. Unrolled NOG training can run away late in training (the results notes, "Unrolling
     across seeds"): the loss rises 100x over ~100 updates, too gradually for the spike cutoff,
     and does not come back. Returns the (possibly new) best snapshot."""
     losses = [h["loss"] for h in history[-ROLLBACK_WINDOW:] if not h["skipped"]]
