@@ -3,8 +3,8 @@
     python benchmarks/training.py [--repeats 30] [--dtype float32]
 
 Side by side in one run:
-* WIG iteration with adjointsim's solver (hand-written adjoint through ``adjointsim.train.bridge``), and
-  the share of it spent in the solver's forward + adjoint;
+* WIG iteration with adjointsim's solver (hand-written adjoint through
+  ``adjointsim.train.bridge``), and the share of it spent in the solver's forward + adjoint;
 * the same WIG iteration with a pure-torch (torch.fft) ETD1 solver under autograd;
 * NOG and ONE iterations, for the ratio NOG / (m × ONE).
 Targets: solver ≤ 20% of the WIG iteration; ≥ 3× faster than the torch-solver
@@ -21,13 +21,13 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+
+import adjointsim  # noqa: E402
 from adjointsim.nets import ResNet, parameter_count  # noqa: E402
+from adjointsim.spectral.etdrk import etdrk_coefficients  # noqa: E402
 from adjointsim.train import bridge  # noqa: E402
 from adjointsim.train.model import NeuralStepper  # noqa: E402
 from adjointsim.train.unroll import unrolled_loss  # noqa: E402
-
-import adjointsim  # noqa: E402
-from adjointsim.spectral.etdrk import etdrk_coefficients  # noqa: E402
 
 
 class TorchETD1KS:

@@ -83,7 +83,8 @@ def _activate(layer: nn.Module, z: list, order: int) -> list:
 def _layers(model: nn.Module) -> list[nn.Module]:
     net = model.net if isinstance(model, MLP) else model
     if not isinstance(net, nn.Sequential):
-        raise TypeError(f"jets need an adjointsim.nets.mlp.MLP or an nn.Sequential, not {type(model)}")
+        raise TypeError("jets need an adjointsim.nets.mlp.MLP or an nn.Sequential, not "
+                        f"{type(model)}")
     layers = list(net)
     for layer in layers:
         if not isinstance(layer, nn.Linear | nn.Tanh | Sin):

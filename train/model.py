@@ -4,9 +4,9 @@
 * correction, parallel:  û_{t+1} = S(û_t) + Δt · f(û_t)
 * correction, sequential: ũ = S(û_t);  û_{t+1} = ũ + f(ũ)
 
-S is the coarse solver, run through :mod:`adjointsim.train.bridge`, one scene per problem parameter (the
-batch is split by parameter). The network also sees the problem's conditioning value as a
-constant extra channel. Whether gradients flow through S is decided by the caller: a detached
+S is the coarse solver, run through :mod:`adjointsim.train.bridge`, one scene per problem
+parameter (the batch is split by parameter). The network also sees the problem's conditioning
+value as a constant extra channel. Whether gradients flow through S is decided by the caller: a detached
 state gives a solver call with no tape and no adjoint (NOG), an attached one runs the
 hand-written adjoint in the backward pass (WIG).
 """
@@ -71,8 +71,8 @@ class NeuralStepper(nn.Module):
     def forward(
         self, u: torch.Tensor, params: torch.Tensor, conditions: torch.Tensor, flow=None
     ) -> torch.Tensor:
-        """One step; ``flow`` (a :class:`adjointsim.train.unroll.GradientFlow`) stops gradients on the
-        state fed into the network (``flow.net``) and into the solver (``flow.phys``)."""
+        """One step; ``flow`` (a :class:`adjointsim.train.unroll.GradientFlow`) stops gradients
+        on the state fed into the network (``flow.net``) and into the solver (``flow.phys``)."""
         if flow is None:
             net, phys, control = _same, _same, _call
         else:

@@ -333,9 +333,9 @@ ROLLBACK_WINDOW = 100
 def _guard(factor: float, history: list[dict], state: dict, model, optimizer, best):
     """The divergence guard: after each window, remember the weights of the best window so far,
     or, when the window's median loss exceeds ``factor`` × the best, restore them and halve the
-    learning rate. Unrolled NOG training can run away late in training (the results notes, "Unrolling
-    across seeds"): the loss rises 100x over ~100 updates, too gradually for the spike cutoff,
-    and does not come back. Returns the (possibly new) best snapshot."""
+    learning rate. Unrolled NOG training can run away late in training (docs/results-notes.md,
+    "Unrolling across seeds"): the loss rises 100x over ~100 updates, too gradually for the
+    spike cutoff, and does not come back. Returns the (possibly new) best snapshot."""
     losses = [h["loss"] for h in history[-ROLLBACK_WINDOW:] if not h["skipped"]]
     median = float(np.median(losses)) if losses else math.inf
     if median < state["best"]:

@@ -4,11 +4,11 @@ the solver-only studies of the core (the ``stability`` sweep of :mod:`adjointsim
 the ``fit-params`` table of :mod:`adjointsim.fit_study`), so adding a study means adding a
 module here, nothing else."""
 
-#: the core's studies: they need no torch, and register themselves like the modules here
-CORE_STUDIES = ("adjointsim.stability", "adjointsim.fit_study")
-
 import importlib
 import pkgutil
+
+#: the core's studies: they need no torch, and register themselves like the modules here
+CORE_STUDIES = ("adjointsim.stability", "adjointsim.fit_study")
 
 
 def load_all() -> None:

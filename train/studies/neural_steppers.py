@@ -41,8 +41,8 @@ STUDIES = {
             "lr_decay_every": 128, "batch": 16}},
         # The paper protocol: correction models, 3x the full study's updates, and a learning
         # rate falling 100x to 1e-5 by the end. At lr 1e-3 x 0.9 every 512 updates, NOG's
-        # training ran away on seeds 1 and 2 (docs/results-notes.md, "Unrolling across seeds"); the paper
-        # trains 80 epochs at 1e-4, about 100x the updates affordable here.
+        # training ran away on seeds 1 and 2 (docs/results-notes.md, "Unrolling across
+        # seeds"); the paper trains 80 epochs at 1e-4, about 100x the updates affordable here.
         "paper": {"data": "full", "seeds": 5, "setups": ("correction",), "train": {
             "width": 26, "blocks": 8, "unroll": 3, "epochs": 6, "stride": 8, "lr": 1e-3,
             "lr_decay_every": 192, "batch": 16}},
