@@ -7,6 +7,7 @@ cells to
 - ``cluster="local"``: a ``LocalCluster`` started in this process with ``jobs`` single-threaded
   worker processes (no dashboard), stopped at the end;
 - ``cluster="tcp://HOST:PORT"``: an existing scheduler (``dask scheduler`` / ``dask worker``),
+  once it has answered as one within :data:`CONNECT_TIMEOUT` + :data:`ANSWER_TIMEOUT` seconds,
   after checking that every worker runs this project's code and writes where we read;
 - ``cluster="none"``: this process, one cell after another (for debugging);
 - ``cluster=None``: ``$DASK_SCHEDULER_ADDRESS`` if set, else ``"local"``.
@@ -15,7 +16,9 @@ A cell is finished when its ``OUT/<id>/row.json`` exists; the runner writes it (
 the worker) from what ``run_cell`` returns, so a rerun submits only unfinished cells, and a
 retried task (an exception, or a worker that died) starts ``run_cell`` again in the same
 directory, where it resumes from its own checkpoint. Failures are reported per cell while the
-others finish; :class:`CellsFailed` carries both.
+others finish; :class:`CellsFailed` carries both. A row file is checked when it is read back
+(JSON, of its cell's configuration, with the study's declared :attr:`Study.row_keys`) and so is
+every row that ``reuse`` would adopt, all of them before any is copied.
 
 Dask is imported only inside the functions that need it, so other commands do not pay for it.
 No torch import here either: the worker gets one thread through the environment.
@@ -23,34 +26,57 @@ No torch import here either: the worker gets one thread through the environment.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import importlib
 import json
 import math
 import os
+import re
+import shlex
 import sys
+import threading
 import uuid
 import warnings
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Mapping
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from tqdm.auto import tqdm
 
+from adjointsim.errors import UserError
 from adjointsim.files import write_text
 
 ROW_FILE = "row.json"
 _ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+# Seconds to get a connection to a scheduler (Dask retries a refused one meanwhile: a scheduler
+# may still be starting), and then at most this much longer for its answer. Dask leaves its
+# handshake without a timeout, so a server that accepts and never answers would hang the study.
+CONNECT_TIMEOUT = 10.0
+ANSWER_TIMEOUT = 2.0
+_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+# what adjointsim.files.json_text adds to a row holding non-finite numbers (a --json file)
+_NOTE_KEYS = frozenset({"non_finite"})
+
+RowKeys = Mapping[str, type | tuple[type, ...]]
 
 
 @dataclass(frozen=True)
 class Study:
     """A grid of independent cells: ``cells(size, seeds)`` lists them (each a dict with an
     ``id``), ``run_cell(cell, out)`` runs one in its own directory and returns its row, and
-    ``report(rows, out)`` writes the tables and plots and returns the text to print."""
+    ``report(rows, out)`` writes the tables and plots and returns the text to print.
+
+    ``row_keys``: the keys every finished row holds besides its cell's, each with its type
+    (``float`` also admits an int, and null, which a non-finite number is written as), or a
+    function of the cell giving them when cells differ. Declared, it is checked on every row
+    read back or reused; without it, a reused row must hold what the other rows of cells with
+    the same configuration keys all hold, with values of the same kind."""
 
     name: str
     sizes: tuple[str, ...]
@@ -58,6 +84,11 @@ class Study:
     run_cell: Callable[[dict, Path], dict]
     report: Callable[[list[dict], Path], str]
     prepare: Callable[[str, Path], dict] | None = None
+    row_keys: RowKeys | Callable[[dict], RowKeys] | None = None
+
+    def expected_keys(self, cell: dict) -> RowKeys | None:
+        """The declared result keys of ``cell``'s row, or None if the study declares none."""
+        return self.row_keys(cell) if callable(self.row_keys) else self.row_keys
 
 
 _STUDIES: dict[str, Study] = {}
@@ -123,13 +154,9 @@ def run(
     out = Path(out).resolve()
     cells = study.cells(size, seeds)
     _check_ids(cells, study_name)
+    rows = _finished_rows(study, cells, out)
     if reuse is not None:
-        _adopt(cells, reuse, out)
-    rows: dict[str, dict] = {}
-    for cell in cells:
-        row = finished_row(cell, out / cell["id"])
-        if row is not None:
-            rows[cell["id"]] = row
+        rows.update(_adopt(study, cells, reuse, out, rows))
     todo = [c for c in cells if c["id"] not in rows]
     failures: list[tuple[str, str]] = []
     if todo:
@@ -159,7 +186,7 @@ def run(
     finished = [rows[c["id"]] for c in cells if c["id"] in rows]
     write_text(out / "rows.json", dumps(finished))
     if finished and report:
-        study.report(finished, out)
+        write_report(study_name, finished, out)
     if failures:
         order = {c["id"]: i for i, c in enumerate(cells)}
         raise CellsFailed(study_name, sorted(failures, key=lambda f: order[f[0]]), finished)
@@ -168,31 +195,98 @@ def run(
 
 def resolve_cluster(cluster: str | None) -> str:
     """``None`` means ``$DASK_SCHEDULER_ADDRESS`` if set, else ``"local"``; a given value
-    wins over the environment."""
+    wins over the environment. An address must be ``[SCHEME://]HOST:PORT`` (tcp without a
+    scheme, as for Dask)."""
+    given = "--cluster"
     if cluster is None:
         cluster = os.environ.get("DASK_SCHEDULER_ADDRESS") or "local"
-    if cluster not in ("local", "none") and "://" not in cluster and ":" not in cluster:
-        raise ValueError(f"--cluster {cluster!r}: give local, none or a scheduler address "
-                         "such as tcp://HOST:8786")
+        if cluster != "local":
+            given = "$DASK_SCHEDULER_ADDRESS"
+    if cluster in ("local", "none"):
+        return cluster
+    problem = _address_problem(cluster)
+    if problem:
+        raise UserError(f"{given} {cluster!r}: {problem}; give local, none or a scheduler "
+                        "address such as tcp://HOST:8786")
     return cluster
 
 
+def _address_problem(address: str) -> str | None:
+    scheme, sep, location = address.partition("://")
+    if not sep:
+        scheme, location = "tcp", address
+    if scheme in ("http", "https"):
+        return ("an http address is a dashboard's, not the scheduler's (`dask scheduler` "
+                "prints both; the scheduler's port is 8786 by default)")
+    if scheme not in _SCHEMES:
+        return f"scheme {scheme!r} is not one of {', '.join(_SCHEMES)}"
+    parts = urlsplit(f"//{location}")
+    if parts.path or parts.query or parts.fragment:
+        return f"{location[len(parts.netloc):]!r} follows HOST:PORT"
+    if not parts.hostname:
+        return "no host before :PORT"
+    try:
+        port = parts.port
+    except ValueError:
+        port = 0
+    if port is None:
+        return "no port after the host"
+    if not 1 <= port <= 65535:
+        return f"port {parts.netloc.rpartition(':')[2]!r} is not a number from 1 to 65535"
+    return None
+
+
 def finished_row(cell: dict, run_dir: Path) -> dict | None:
-    """The cell's row if ``run_dir`` holds a finished one; refuses a row of another cell."""
+    """The cell's row if ``run_dir`` holds a finished one; refuses a damaged row or a row of
+    another cell."""
+    row, problem = _read_row(cell, run_dir, None)
+    if problem is not None:
+        raise ValueError(f"{run_dir / ROW_FILE} is damaged ({problem}); delete it to run the "
+                         "cell again")
+    return row
+
+
+def _read_row(cell: dict, run_dir: Path, expected: RowKeys | None
+              ) -> tuple[dict | None, str | None]:
+    """The cell's row in ``run_dir`` (None if it has none), or what is wrong with the file;
+    refuses a row of another configuration."""
     path = run_dir / ROW_FILE
     if not path.exists():
-        return None
+        return None, None
     try:
         row = json.loads(path.read_text())
-        if not isinstance(row, dict):
-            raise ValueError(f"a JSON {type(row).__name__}, not an object")
     except ValueError as e:
-        raise ValueError(f"{path} is damaged ({e}); delete it to run the cell again") from None
+        return None, f"not JSON: {e}"
+    if not isinstance(row, dict):
+        return None, f"a JSON {type(row).__name__}, not an object"
     differ = _differs(cell, row)
     if differ:
         raise ValueError(f"{path} holds a result of another configuration (differs in "
                          f"{differ}); use another --out, or delete {run_dir} to redo the cell")
-    return row
+    problem = _unfit(row, expected) if expected is not None else None
+    return (None, problem) if problem else (row, None)
+
+
+def _finished_rows(study: Study, cells: list[dict], out: Path) -> dict[str, dict]:
+    """The finished rows under ``out`` by cell id; refuses, naming every one, damaged row
+    files (their cells are not rerun silently: a row may hold hours of work, and the user
+    decides whether it is lost)."""
+    rows, damaged = {}, []
+    for cell in cells:
+        row, problem = _read_row(cell, out / cell["id"], study.expected_keys(cell))
+        if problem is not None:
+            damaged.append((out / cell["id"] / ROW_FILE, problem))
+        elif row is not None:
+            rows[cell["id"]] = row
+    if len(damaged) == 1:
+        (path, problem), = damaged
+        raise UserError(f"{path} is damaged ({problem}); delete it to run that cell again")
+    if damaged:
+        listed = "; ".join(f"{path} ({problem})" for path, problem in damaged)
+        raise UserError(f"{len(damaged)} row files are damaged: {listed}; delete them to run "
+                        "those cells again: rm " + " ".join(shlex.quote(str(p))
+                                                            for p, _ in damaged))
+    return rows
 
 
 def _differs(cell: dict, row: dict) -> list[str]:
@@ -200,10 +294,12 @@ def _differs(cell: dict, row: dict) -> list[str]:
     return sorted(k for k, v in cell.items() if _jsonable(v) != row.get(k))
 
 
-def _adopt(cells: list[dict], path: str | Path, out: Path) -> None:
+def _adopt(study: Study, cells: list[dict], path: str | Path, out: Path,
+           finished: dict[str, dict]) -> dict[str, dict]:
     """Write the rows of ``path`` that belong to ``cells`` as their run directories' row
-    files (a cell that already has one keeps it; a row of another configuration is
-    refused)."""
+    files (a cell that already has one keeps it) and return them by cell id. Every row is
+    checked first and one unfit row (of another configuration, without the results of a
+    finished cell) refuses them all: a row copied into a run directory stays there."""
     try:
         given = json.loads(Path(path).read_text())
         if not (isinstance(given, list) and all(isinstance(r, dict) for r in given)):
@@ -212,17 +308,141 @@ def _adopt(cells: list[dict], path: str | Path, out: Path) -> None:
         raise ValueError(f"--reuse {path}: cannot read its rows ({e}); give a rows.json or "
                          "--json file of an earlier run of this study") from None
     by_id = {r.get("id"): r for r in given}
+    adopted: dict[str, dict] = {}
     for cell in cells:
-        row, run_dir = by_id.get(cell["id"]), out / cell["id"]
-        if row is None or (run_dir / ROW_FILE).exists():
+        row = by_id.get(cell["id"])
+        if row is None or cell["id"] in finished:
             continue
         differ = _differs(cell, row)
         if differ:
             raise ValueError(f"--reuse {path}: its row {cell['id']!r} is of another "
                              f"configuration (differs in {differ}); it belongs to another "
                              "size or version of the study")
+        adopted[cell["id"]] = row
+    unfit = _unfit_rows(study, cells, adopted, {**finished, **adopted})
+    if unfit:
+        (first, problem), *more = unfit
+        others = (f"; and {len(more)} more row{'s' * (len(more) > 1)} "
+                  f"({', '.join(cid for cid, _ in more[:5])}{', ...' * (len(more) > 5)})"
+                  if more else "")
+        raise UserError(f"--reuse {path}: its row {first!r} {problem}{others}; nothing was "
+                        "copied: give a --json or rows.json file of a run of this version of "
+                        "the study, or remove these rows from it to run their cells here")
+    for cell_id, row in adopted.items():
+        run_dir = out / cell_id
         run_dir.mkdir(parents=True, exist_ok=True)
         write_text(run_dir / ROW_FILE, dumps(row))
+    return adopted
+
+
+def _unfit_rows(study: Study, cells: list[dict], candidates: dict[str, dict],
+                known: dict[str, dict]) -> list[tuple[str, str]]:
+    """``(cell id, what is wrong)`` for each candidate row, in cell order: checked against the
+    study's declared keys, or else against the other ``known`` rows of cells with the same
+    configuration keys (which all come from one study, so what all of them hold, a finished
+    row holds)."""
+    groups: dict[frozenset, list[dict]] = {}
+    for cell in cells:
+        if cell["id"] in known:
+            groups.setdefault(frozenset(cell), []).append(known[cell["id"]])
+    peers = {sig: _Peers(rows) for sig, rows in groups.items()}
+    unfit = []
+    for cell in cells:
+        row = candidates.get(cell["id"])
+        if row is None:
+            continue
+        expected = study.expected_keys(cell)
+        problem = (_unfit(row, expected) if expected is not None
+                   else peers[frozenset(cell)].unfit(row))
+        if problem:
+            unfit.append((cell["id"], problem))
+    return unfit
+
+
+class _Peers:
+    """What rows of one kind hold: how many hold each key, and the kinds of its values."""
+
+    def __init__(self, rows: list[dict]):
+        self.n = len(rows)
+        self.holding = Counter(k for r in rows for k in r if k not in _NOTE_KEYS)
+        self.kinds = {k: Counter(_kind(r[k]) for r in rows if k in r) for k in self.holding}
+
+    def unfit(self, row: dict) -> str | None:
+        """What ``row`` (one of the rows) lacks that all the others hold, or holds as a value
+        of another kind than all the others' (nulls aside, two at least)."""
+        others = self.n - 1
+        if others == 0:
+            return None
+        missing = [k for k, n in self.holding.items() if n == others and k not in row]
+        if missing:
+            return f"lacks {', '.join(map(repr, missing))}, which the other rows hold"
+        for key, value in row.items():
+            kind = _kind(value)
+            others_kinds = self.kinds.get(key, Counter()) - Counter([kind])
+            others_kinds.pop("null", None)
+            # one other row against this one cannot tell which of the two is wrong
+            if (kind != "null" and len(others_kinds) == 1 and kind not in others_kinds
+                    and others_kinds.total() > 1):
+                return (f"holds {_short(value)} under {key!r} where the other rows hold a "
+                        f"{next(iter(others_kinds))}")
+        return None
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, int | float):
+        return "number"
+    return {str: "string", list: "list", dict: "object"}.get(type(value), type(value).__name__)
+
+
+def _unfit(row: dict, expected: RowKeys) -> str | None:
+    """What ``row`` lacks of the declared ``expected`` keys, or the first value of another
+    type."""
+    missing = [k for k in expected if k not in row]
+    if missing:
+        return f"lacks {', '.join(map(repr, missing))}"
+    for key, types in expected.items():
+        if not _fits(row[key], types if isinstance(types, tuple) else (types,)):
+            names = " or ".join(t.__name__ for t in
+                                (types if isinstance(types, tuple) else (types,)))
+            return f"holds {_short(row[key])} under {key!r}, not a {names}"
+    return None
+
+
+def _fits(value: Any, types: tuple[type, ...]) -> bool:
+    if float in types:  # JSON holds 2 for 2.0 and null for a non-finite number
+        types = (*types, int, type(None))
+    if isinstance(value, bool):
+        return bool in types
+    return isinstance(value, types)
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def write_report(study_name: str, rows: list[dict], out: Path) -> str:
+    """The study's report of ``rows`` (written under ``out``; its text returned). A row
+    without a key that the report reads and other rows hold (damaged, or of another version
+    of the study) is named with how to run its cell again, in place of a KeyError."""
+    try:
+        return get_study(study_name).report(rows, out)
+    except KeyError as e:
+        key = e.args[0] if len(e.args) == 1 else None
+        lacking = [r.get("id") for r in rows if isinstance(key, str) and key not in r]
+        if not lacking or len(lacking) == len(rows):
+            raise
+        paths = [out / str(cid) / ROW_FILE for cid in lacking]
+        listed = ", ".join(map(str, paths))
+        raise UserError(
+            f"{listed} {'lacks' if len(paths) == 1 else 'lack'} {key!r}, which the study's "
+            "report reads and its other rows hold (a damaged row, or one of another version "
+            f"of the study); delete {'it' if len(paths) == 1 else 'them'} to run "
+            f"{'that cell' if len(paths) == 1 else 'those cells'} again") from None
 
 
 def dumps(obj: Any) -> str:
@@ -323,7 +543,8 @@ def _dask_client(study: Study, out: Path, cluster: str, workers: int, retries: i
                 yield client
         else:
             client = _connect(cluster)
-            try:
+            try:  # Ctrl-C included: a client left open times out in its __del__, later
+                _wait_for_workers(client, cluster)
                 check_workers(client, out, study)
                 yield client
             finally:
@@ -359,21 +580,90 @@ def _describe_failure(exc: BaseException, retries: int) -> str:
     return _one_line(exc)
 
 
+class ClusterError(OSError):
+    """No usable scheduler at the given address (the message says what to check)."""
+
+
 def _connect(address: str):
+    """A client of the scheduler at ``address``, once it has answered as one."""
     from distributed import Client
 
+    _ask_scheduler(address)
     try:
-        client = Client(address, timeout="10s")
+        return Client(address, timeout=CONNECT_TIMEOUT + ANSWER_TIMEOUT)
     except (OSError, TimeoutError) as e:
-        raise OSError(f"cannot reach a Dask scheduler at {address} ({_one_line(e)}); start one "
-                      "with `dask scheduler` and give its address (tcp://HOST:8786)") from None
+        raise ClusterError(f"cannot reach a Dask scheduler at {address} ({_one_line(e)}); "
+                           "start one with `dask scheduler` and give its address "
+                           "(tcp://HOST:8786)") from None
+
+
+def _wait_for_workers(client, address: str) -> None:
     try:
         client.wait_for_workers(1, timeout=30)
     except (TimeoutError, OSError):
-        client.close()
-        raise OSError(f"the scheduler at {address} has no workers; start some with "
-                      f"`dask worker {address} --nthreads 1` on each machine") from None
-    return client
+        raise ClusterError(f"the scheduler at {address} has no workers; start some with "
+                           f"`dask worker {address} --nthreads 1` on each machine") from None
+
+
+def _ask_scheduler(address: str) -> None:
+    """Refuse ``address`` unless a Dask scheduler answers there within CONNECT_TIMEOUT +
+    ANSWER_TIMEOUT seconds. Asked on an event loop of its own, in a thread of its own, so a
+    caller's running loop (a notebook's) is no obstacle; the thread ends by the deadline."""
+    outcome: dict[str, Any] = {}
+
+    def ask() -> None:
+        try:
+            outcome["identity"] = asyncio.run(asyncio.wait_for(
+                _identity(address), CONNECT_TIMEOUT + ANSWER_TIMEOUT))
+        except Exception as e:  # raised below, in the caller's thread
+            outcome["error"] = e
+
+    from distributed.comm import CommClosedError
+
+    thread = threading.Thread(target=ask, name="adjointsim-ask-scheduler", daemon=True)
+    thread.start()
+    thread.join()
+    error, identity = outcome.get("error"), outcome.get("identity")
+    check = ("check the address: a scheduler listens on port 8786 by default (8787 is its "
+             "dashboard) and `dask scheduler` prints it")
+    if isinstance(error, TimeoutError):
+        raise ClusterError(f"{address} accepts connections but does not answer as a Dask "
+                           f"scheduler within {CONNECT_TIMEOUT + ANSWER_TIMEOUT:g} s; "
+                           f"{check}")
+    if isinstance(error, CommClosedError):  # after connecting: connect() retries it before
+        raise ClusterError(f"{address} closed the connection and does not answer as a Dask "
+                           f"scheduler ({_one_line(error)}); {check}")
+    if isinstance(error, OSError):  # Dask's connect gave up: refused, unrouted, unknown host
+        # its comm errors read "in <TCPConnector object at 0x...>: ConnectionRefusedError: ..."
+        cause = (" (" + re.sub(r"^in <[^>]*>: ", "", str(error.__cause__)) + ")"
+                 if error.__cause__ else "")
+        raise ClusterError(f"cannot reach a Dask scheduler at {address}: nothing accepted a "
+                           f"connection within {CONNECT_TIMEOUT:g} s{cause}; check the host "
+                           "and port, and that `dask scheduler` runs there")
+    if error is not None:
+        raise ClusterError(f"{address} does not answer as a Dask scheduler "
+                           f"({_one_line(error)}); {check}")
+    kind = identity.get("type") if isinstance(identity, dict) else None
+    if kind in ("Worker", "Nanny"):
+        raise ClusterError(f"{address} is a Dask {kind.lower()}, not the scheduler; give "
+                           "the scheduler's address (the one `dask worker` was given)")
+    if kind != "Scheduler":
+        raise ClusterError(f"{address} does not answer as a Dask scheduler (it says "
+                           f"{_short(identity)}); {check}")
+
+
+async def _identity(address: str) -> Any:
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    # connect() retries until CONNECT_TIMEOUT, then shakes hands without a timeout of its own
+    comm = await connect(address, timeout=CONNECT_TIMEOUT,
+                         **Security().get_connection_args("client"))
+    try:
+        await comm.write({"op": "identity", "reply": True})
+        return await comm.read()
+    finally:
+        comm.abort()
 
 
 @cache

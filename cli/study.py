@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         raise Interrupted("run the same command again: finished cells are kept and the "
                           "others resume from their checkpoints") from None
     if rows:
-        print(runner.get_study(args.problem).report(rows, out.resolve()))
+        print(runner.write_report(args.problem, rows, out.resolve()))
     if args.json:
         write_json(args.json, rows)
     for cell_id, error in failed:

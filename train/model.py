@@ -6,9 +6,9 @@
 
 S is the coarse solver, run through :mod:`adjointsim.train.bridge`, one scene per problem
 parameter (the batch is split by parameter). The network also sees the problem's conditioning
-value as a constant extra channel. Whether gradients flow through S is decided by the caller: a detached
-state gives a solver call with no tape and no adjoint (NOG), an attached one runs the
-hand-written adjoint in the backward pass (WIG).
+value as a constant extra channel. Whether gradients flow through S is decided by the caller:
+a detached state gives a solver call with no tape and no adjoint (NOG), an attached one runs
+the hand-written adjoint in the backward pass (WIG).
 """
 
 from __future__ import annotations

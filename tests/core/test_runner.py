@@ -1,18 +1,25 @@
 """The Dask study runner (adjointsim.runner) on one machine: a 2-worker local cluster, a
-worker killed mid-cell, a failing cell, a rerun that runs nothing, and a real `dask scheduler`
-and `dask worker` reached by --cluster and by DASK_SCHEDULER_ADDRESS.
+worker killed mid-cell, a failing cell, a rerun that runs nothing, a real `dask scheduler`
+and `dask worker` reached by --cluster and by DASK_SCHEDULER_ADDRESS, addresses where no
+scheduler answers, and rows (reused or damaged) that lack results.
 
 The cells are the test-only study in tests/_runner_cells.py (importable by worker processes).
 """
 
 from __future__ import annotations
 
+import gc
+import http.server
 import json
 import os
 import signal
+import socket
+import socketserver
 import subprocess
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import _runner_cells  # noqa: F401  (registers the "runner-test" study)
@@ -129,6 +136,113 @@ def test_existing_scheduler_by_flag_and_by_environment(scheduler, tmp_path, monk
     assert not (tmp_path / "lonely" / "ok-0").exists()
 
 
+def test_a_worker_address_and_ctrl_c_while_waiting_for_workers(scheduler, tmp_path,
+                                                               monkeypatch):
+    import distributed
+
+    with distributed.Client(scheduler, timeout="30s") as client:
+        client.wait_for_workers(1, timeout=60)
+        worker = next(iter(client.scheduler_info()["workers"]))
+    with pytest.raises(OSError, match=f"{worker} is a Dask worker, not the scheduler"):
+        runner.run("runner-test", tmp_path / "w", "ok", 1, cluster=worker, progress=False)
+    # Ctrl-C while the runner waits for workers: the client is closed there, not left to
+    # Client.__del__ (which then times out with a traceback during a later run).
+    closed = []
+    close = distributed.Client.close
+    monkeypatch.setattr(distributed.Client, "close",
+                        lambda self, *a, **k: closed.append(self) or close(self, *a, **k))
+
+    def interrupted(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(distributed.Client, "wait_for_workers", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run("runner-test", tmp_path / "c", "ok", 1, cluster=scheduler, progress=False)
+    assert len(closed) == 1 and closed[0].status == "closed"
+
+
+class _Silent(socketserver.BaseRequestHandler):
+    """Accepts a connection and reads it to its end without a word."""
+
+    def handle(self):
+        try:
+            while self.request.recv(65536):
+                pass
+        except OSError:
+            pass
+
+
+class _Quiet(http.server.BaseHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+@contextmanager
+def _listening(kind: str):
+    """A server on 127.0.0.1 (a free port) that is not a Dask scheduler."""
+    server = (socketserver.ThreadingTCPServer(("127.0.0.1", 0), _Silent) if kind == "silent"
+              else http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Quiet))
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"tcp://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("kind", ["silent", "http"])
+def test_a_server_that_is_no_scheduler_is_refused_in_seconds(kind, tmp_path, monkeypatch,
+                                                              capsys):
+    monkeypatch.setattr(runner, "CONNECT_TIMEOUT", 1.0)
+    monkeypatch.setattr(runner, "ANSWER_TIMEOUT", 1.0)
+    argv = ["study", "runner-test", "--size", "ok", "--seeds", "1", "--out", str(tmp_path),
+            "--no-progress", "--cluster"]
+    with _listening(kind) as address:
+        start = time.monotonic()
+        assert main([*argv, address]) == 2
+        elapsed = time.monotonic() - start
+    err = capsys.readouterr().err
+    assert elapsed < 8, elapsed
+    assert err.count("\n") == 1 and f"{address} " in err
+    assert "not answer as a Dask scheduler" in err and "8786" in err
+    gc.collect()  # a client left half made would raise from its __del__ here
+    assert not (tmp_path / "ok-0").exists()
+
+
+def test_an_address_where_nothing_listens_is_refused_in_seconds(tmp_path, monkeypatch):
+    monkeypatch.setattr(runner, "CONNECT_TIMEOUT", 1.0)
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    start = time.monotonic()
+    with pytest.raises(OSError, match=f"cannot reach a Dask scheduler at {address}: nothing "
+                       "accepted a connection within 1 s"):
+        runner.run("runner-test", tmp_path, "ok", 1, cluster=address, progress=False)
+    assert time.monotonic() - start < 8
+
+
+@pytest.mark.parametrize("address, says", [
+    ("laptop", "no port"), ("tcp://127.0.0.1", "no port"), ("tcp://:8786", "no host"),
+    ("tcp://127.0.0.1:abc", "port 'abc'"), ("127.0.0.1:99999", "port '99999'"),
+    ("tcp://127.0.0.1:0", "port '0'"), ("tpc://127.0.0.1:8786", "scheme 'tpc'"),
+    ("http://127.0.0.1:8787", "dashboard"), ("tcp://127.0.0.1:8786/x", "'/x'"),
+])
+def test_a_malformed_address_is_refused_before_anything(address, says, tmp_path,
+                                                        monkeypatch):
+    with pytest.raises(ValueError, match=f"--cluster '{address}': .*{says}.*tcp://HOST:8786"):
+        runner.run("runner-test", tmp_path, "ok", 1, cluster=address, progress=False)
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", address)
+    with pytest.raises(ValueError, match=r"\$DASK_SCHEDULER_ADDRESS '"):
+        runner.resolve_cluster(None)
+    assert runner.resolve_cluster("127.0.0.1:8786") == "127.0.0.1:8786"  # Dask's default tcp
+    assert not list(tmp_path.iterdir())
+
+
 def test_worker_problems_say_what_to_fix():
     here = {"version": "0.1.0", "source": "abc"}
     ok = {**here, "host": "a", "problems": []}
@@ -179,3 +293,95 @@ def test_rows_of_an_earlier_run_are_reused_not_rerun(tmp_path, capsys):
     with pytest.raises(ValueError, match="cannot read its rows"):
         runner.run("runner-test", tmp_path / "third", "ok", 2, cluster="none",
                    reuse=tmp_path / "cut.json")
+
+
+def _study(out: Path, name: str, seeds: int, *extra: str) -> list[str]:
+    return ["study", name, "--size", "ok", "--seeds", str(seeds), "--cluster", "none",
+            "--no-progress", "--out", str(out), *extra]
+
+
+@pytest.mark.parametrize("bad, says", [
+    ({"id": "ok-2", "seed": 2}, "lacks 'pid', 'threads', 'value'"),
+    ({"id": "ok-2", "seed": 2, "pid": 1, "threads": 1, "value": "1.5"},
+     "holds '1.5' under 'value' where the other rows hold a number"),
+])
+def test_reused_rows_are_checked_whole_and_a_bad_one_copies_nothing(bad, says, tmp_path,
+                                                                     capsys):
+    """A reused row without the results the study's cells return (or with a value of another
+    kind) would break every later run of the directory: refused before anything is copied,
+    both into a directory with finished rows and into a new one."""
+    good = tmp_path / "good.json"
+    assert main(_study(tmp_path / "first", "runner-test", 3, "--json", str(good))) == 0
+    rows = json.loads(good.read_text())
+    (tmp_path / "bad.json").write_text(json.dumps([*rows[:2], bad]))
+    for out in (tmp_path / "some", tmp_path / "fresh"):
+        if out.name == "some":
+            runner.run("runner-test", out, "ok", 1, cluster="none", progress=False)
+        before = sorted(p.relative_to(out) for p in out.rglob("*")) if out.exists() else []
+        capsys.readouterr()
+        assert main(_study(out, "runner-test", 3, "--reuse", str(tmp_path / "bad.json"))) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1
+        assert f"--reuse {tmp_path / 'bad.json'}: its row 'ok-2' {says}" in err
+        assert "nothing was copied" in err and "remove" in err
+        after = sorted(p.relative_to(out) for p in out.rglob("*")) if out.exists() else []
+        assert after == before  # not even the good rows ok-0 and ok-1
+    # The good file still finishes those cells without running them.
+    assert main(_study(tmp_path / "fresh", "runner-test", 3, "--reuse", str(good))) == 0
+    assert not (tmp_path / "fresh" / "calls.log").exists()
+
+
+def test_a_damaged_row_in_the_study_directory_is_named_with_the_fix(tmp_path, capsys):
+    out = tmp_path / "study"
+    argv = _study(out, "runner-test", 3)
+    assert main(argv) == 0
+    row = json.loads((out / "ok-1" / "row.json").read_text())
+    del row["pid"]  # a row of another version of the study, or edited by hand
+    (out / "ok-1" / "row.json").write_text(json.dumps(row))
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert f"{out / 'ok-1' / 'row.json'} lacks 'pid'" in err and "delete" in err
+    (out / "ok-1" / "row.json").write_text('{"id": "ok-1", "se')  # cut short
+    (out / "ok-2" / "row.json").write_text("[]")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "2 row files are damaged" in err
+    assert f"{out / 'ok-1' / 'row.json'} (not JSON" in err
+    assert f"{out / 'ok-2' / 'row.json'} (a JSON list, not an object)" in err
+    assert "delete them to run those cells again" in err
+    calls = _calls(out)
+    (out / "ok-1" / "row.json").unlink()
+    (out / "ok-2" / "row.json").unlink()
+    assert main(argv) == 0
+    assert [c.split()[0] for c in _calls(out)[len(calls):]] == ["ok-1", "ok-2"]
+
+
+@pytest.mark.parametrize("row_keys", [
+    {"pid": int, "threads": int, "value": float},
+    lambda cell: {"pid": int, "value": float} if cell["id"].startswith("ok") else {"pid": int},
+], ids=["mapping", "per-cell"])
+def test_a_study_may_declare_its_row_keys(row_keys, tmp_path, capsys):
+    """Declared keys and types hold for every row: rows that all lack a key (an older version
+    of the study) are refused too, and a damaged row is found before any cell runs."""
+    runner.register_study(runner.Study("runner-declared", ("ok",), _runner_cells.cells,
+                                       _runner_cells.run_cell, _runner_cells.report,
+                                       row_keys=row_keys))
+    old = [{"id": f"ok-{k}", "seed": k, "pid": 1, "threads": 1} for k in range(2)]
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    out = tmp_path / "study"
+    argv = _study(out, "runner-declared", 2)
+    assert main([*argv, "--reuse", str(tmp_path / "old.json")]) == 2
+    assert "its row 'ok-0' lacks 'value'; and 1 more row (ok-1)" in capsys.readouterr().err
+    assert not out.exists() or not list(out.rglob("row.json"))
+    assert main(argv) == 0
+    row = json.loads((out / "ok-0" / "row.json").read_text())
+    (out / "ok-0" / "row.json").write_text(json.dumps({**row, "value": None}))  # a NaN: fine
+    assert main(argv) == 0
+    (out / "ok-0" / "row.json").write_text(json.dumps({**row, "value": [1.0]}))
+    calls = _calls(out)
+    assert main(argv) == 2
+    assert (f"{out / 'ok-0' / 'row.json'} is damaged (holds [1.0] under 'value', not a "
+            "float); delete it to run that cell again" in capsys.readouterr().err)
+    assert _calls(out) == calls
