@@ -316,6 +316,16 @@ def require_checkpoint(out: Path) -> None:
                         "command without --resume to start the run")
 
 
+def holds_run(out: Path, config: dict) -> bool:
+    """Whether ``out`` holds a run of the command whose configs have ``config``'s keys (of any
+    configuration): what ``--overwrite`` may discard. Somebody else's files never are."""
+    try:
+        theirs = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(theirs, dict) and theirs.keys() == config.keys()
+
+
 def discard(out: Path, patterns: Iterable[str]) -> None:
     """``--overwrite``: remove the files of the run in ``out`` (those matching ``patterns``,
     with ``config.json``, ``checkpoint.pt`` and ``result.json``)."""

@@ -28,7 +28,6 @@ one, and may be continued to more epochs.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 import warnings
@@ -52,6 +51,7 @@ from adjointsim.run import (
     check_memory,
     differing,
     discard,
+    holds_run,
     plot_history,
     read_result,
     refuse_foreign,
@@ -454,7 +454,7 @@ def _claim(cfg: ControlConfig, out: Path, resume: bool, overwrite: bool) -> dict
     ckpt_path = out / "checkpoint.pt"
     again = "choose another --out, or start again with --overwrite"
     if overwrite:
-        if not _holds_control_run(out):
+        if not holds_run(out, cfg.as_dict()):
             refuse_foreign(out, cfg.as_dict())
         discard(out, RUN_FILES)
         return None
@@ -487,17 +487,6 @@ def _finished(ckpt: dict, cfg: ControlConfig, out: Path) -> bool:
     stopped between its last checkpoint and result.json resumes to write it)."""
     return (ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs
             and (out / "result.json").exists())
-
-
-def _holds_control_run(out: Path) -> bool:
-    """Whether ``out`` holds a run of this command (of any configuration): what --overwrite
-    may discard."""
-    try:
-        theirs = json.loads((out / "config.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(theirs, dict) and set(theirs) == {
-        f.name for f in dataclasses.fields(ControlConfig)}
 
 
 def _title(cfg: ControlConfig) -> str:

@@ -59,6 +59,7 @@ from adjointsim.run import (
     Interval,
     discard,
     finished_result,
+    holds_run,
     plot_history,
     write_history,
 )
@@ -314,7 +315,7 @@ def train_run(cfg: HigConfig, out: Path, resume: bool = False, overwrite: bool =
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
     config = cfg.as_dict()
-    if overwrite and (out / "config.json").exists():  # a run's files, never somebody else's
+    if overwrite and holds_run(out, config):  # a run's files, never somebody else's
         discard(out, RUN_FILES)
     finished = finished_result(out, resume, config, ("wall_s", "updates", "test_loss"))
     if finished is not None:

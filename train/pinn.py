@@ -29,7 +29,6 @@ once finished, and the plots ``field.png`` (exact, prediction, error) and ``hist
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -52,12 +51,13 @@ from adjointsim.run import (
     check_memory,
     discard,
     finished_result,
+    holds_run,
     plot_history,
     write_history,
 )
 
 from .checkpoint import load_run_checkpoint, save_checkpoint
-from .weighting import ALIASES, RULES, Weighting, canonical_rule
+from .weighting import ALIASES, RECORDED, RULES, Weighting, canonical_rule, scheme_name
 
 PROBLEMS = ("poisson", "sobolev", "ks-inverse")
 #: each problem's network: activation and the default width (``width = 0``)
@@ -73,6 +73,10 @@ REPORTED = {
     "max-avg": {1: 1e-3, 2: 1.9e-3, 3: 3.7e-3, 4: 5.5e-3, 5: 6e-3, 6: 7.5e-3},
     "fixed": {1: 2e-4, 2: 4e-4, 3: 8.5e-4, 4: 2.5e-3, 5: 5e-3, 6: 8e-3},
 }
+#: the weightings only Poisson provides for: its analytic weights, its per-sample residuals
+NEEDS_POISSON = ("epsilon-optimal", "ntk")
+#: collocation points (and a quarter as many per edge) whose residuals give the NTK weights
+NTK_POINTS = 64
 #: consecutive non-finite losses after which a run is given up (full batch: the same
 #: parameters give the same loss, so skipping cannot recover)
 MAX_SKIPS = 10
@@ -88,7 +92,7 @@ RUN_FILES = ("history.csv", "weights.csv", "field.png", "history.png")
 ACCEPTED: dict[str, tuple | Interval | str] = {
     "problem": PROBLEMS,
     "k": Interval(*K_RANGE),
-    "weighting": (*RULES, *ALIASES),
+    "weighting": (*RULES, *ALIASES, *RECORDED),
     "reference": ("res", "max"),
     "epochs": Interval(0),
     "seed": SEEDS,
@@ -142,9 +146,11 @@ class PinnConfig(Config):
         if self.problem != "poisson" and self.route != "taylor":
             raise UserError(f"config key 'route'{where}: the {self.problem} problem takes route "
                             "'taylor' only (fourth derivatives)")
-        if self.problem != "poisson" and self.weighting == "fixed":
+        if self.problem != "poisson" and scheme_name(self.weighting) in NEEDS_POISSON:
+            others = [r for r in RULES if r not in NEEDS_POISSON]
             raise UserError(f"config key 'weighting'{where}: the {self.problem} problem has no "
-                            "analytic weights; choose uniform, inverse-dirichlet or max-avg")
+                            f"analytic weights and no per-sample residuals; choose one of "
+                            f"{', '.join(others)}")
         self.width = self.width or NETWORKS[self.problem][1]
         self.epochs = self.epochs or EPOCHS[self.problem]
         check_memory(memory_needed(self), f"width {self.width}, depth {self.depth}, collocation "
@@ -288,11 +294,23 @@ class Poisson(PinnProblem):
     def model(self) -> Standardized:
         return _tanh_mlp(self.cfg, self.x_col.mean(dim=0), self.x_col.std(dim=0))
 
+    def residuals(self, model: Standardized, route: str = "taylor",
+                  points: int = 0) -> dict[str, torch.Tensor]:
+        """Δu − f at the collocation points and u − g at the edge points; with ``points``, at
+        the first ``points`` of them and the first ``points // 4`` of each edge."""
+        x_col, f_col, x_bc, u_bc = self.x_col, self.f_col, self.x_bc, self.u_bc
+        if points:
+            x_col, f_col = x_col[:points], f_col[:points]
+            edge = slice(0, max(points // len(self.EDGES), 1))
+            x_bc = x_bc.view(len(self.EDGES), -1, 2)[:, edge].reshape(-1, 2)
+            u_bc = u_bc.view(len(self.EDGES), -1, 1)[:, edge].reshape(-1, 1)
+        return {"res": model.laplacian(x_col, route) - f_col, "bc": model(x_bc) - u_bc}
+
     def losses(self, model: Standardized, route: str = "taylor",
                terms: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
-        res = model.laplacian(self.x_col, route) - self.f_col
-        bc = ((model(self.x_bc) - self.u_bc) ** 2).view(len(self.EDGES), -1).mean(dim=1).sum()
-        return {"res": (res**2).mean(), "bc": bc}
+        r = self.residuals(model, route)
+        bc = (r["bc"] ** 2).view(len(self.EDGES), -1).mean(dim=1).sum()
+        return {"res": (r["res"] ** 2).mean(), "bc": bc}
 
     def analytic_weights(self) -> dict[str, float]:
         lam = 1.0 / (1.0 + self.omega**4)
@@ -457,11 +475,12 @@ def make_problem(cfg: PinnConfig) -> PinnProblem:
 
 
 def make_weighting(cfg: PinnConfig, problem: PinnProblem) -> Weighting:
-    fixed = problem.analytic_weights() if cfg.weighting == "fixed" else None
+    fixed = problem.analytic_weights() if scheme_name(cfg.weighting) == "epsilon-optimal" \
+        else None
     reference = None if cfg.reference == "max" and cfg.weighting == "inverse-dirichlet" \
         else problem.reference
     return Weighting(problem.terms, cfg.weighting, reference=reference, alpha=cfg.alpha,
-                     every=cfg.every, fixed=fixed)
+                     every=cfg.every, fixed=fixed, seed=cfg.seed)
 
 
 # ----------------------------------------------------------------------------- training
@@ -476,7 +495,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     config = cfg.as_dict()
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    if overwrite and _holds_run(out, config):
+    if overwrite and holds_run(out, config):
         discard(out, RUN_FILES)
     else:
         finished = finished_result(out, resume, config, RESULT_KEYS)
@@ -567,7 +586,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             if logging:
                 log(epoch, values)  # the weights before this epoch's refresh
             with uninterrupted():
-                weighting.backward({t: losses[t] for t in active}, params, epoch)
+                weighting.backward({t: losses[t] for t in active}, params, epoch,
+                                   lambda: problem.residuals(model, cfg.route, NTK_POINTS))
                 opt.step()
                 sched.step()
                 state["seconds"] += time.perf_counter() - t0
@@ -644,13 +664,3 @@ def plot_run(problem: PinnProblem, model: nn.Module, history: list[dict], out: P
             ax.axvline(p["epoch"], color="0.6", ls=":", lw=0.8)
     fig.suptitle(title)
     save_figure(fig, path, dpi=110)
-
-
-def _holds_run(out: Path, config: dict) -> bool:
-    """Whether ``out`` holds a run of this command (of any configuration): what
-    ``overwrite`` may discard. Somebody else's files are never a run."""
-    try:
-        theirs = json.loads((out / "config.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(theirs, dict) and theirs.keys() == config.keys()

@@ -29,7 +29,16 @@ from tqdm.auto import tqdm
 from adjointsim.errors import RunExists, UserError
 from adjointsim.files import uninterrupted, write_text
 from adjointsim.nets import DilatedResNet, ResNet, UNet, parameter_count
-from adjointsim.run import SEEDS, Config, Interval, discard, plot_history, write_history
+from adjointsim.run import (
+    SEEDS,
+    Config,
+    Interval,
+    discard,
+    holds_run,
+    plot_history,
+    refuse_foreign,
+    write_history,
+)
 
 from . import data as datamod
 from .checkpoint import load_checkpoint, restore, save_checkpoint
@@ -166,10 +175,13 @@ _RECOVER = ("copy an intact run directory over it and continue with --resume, or
             "from scratch with --overwrite")
 
 
-def _claim(out: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse a directory holding another run unless told to resume or overwrite it."""
+def _claim(out: Path, config: dict, resume: bool, overwrite: bool) -> None:
+    """Refuse a directory holding another run unless told to resume or overwrite it, and one
+    holding somebody else's files always."""
     if resume and overwrite:
         raise UserError("--resume continues a run and --overwrite discards it: pass one")
+    if not holds_run(out, config):
+        refuse_foreign(out, config)
     ckpt_path = out / "checkpoint.pt"
     if resume or overwrite or not (ckpt_path.exists() or (out / "config.json").exists()):
         return
@@ -195,7 +207,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     cfg.validate()
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    _claim(out, resume, overwrite)
+    _claim(out, asdict(cfg), resume, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     dataset = datamod.load(cfg.data)
     if dataset.problem.name != cfg.problem:

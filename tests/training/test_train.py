@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from adjointsim.errors import UserError
+from adjointsim.errors import RunExists, UserError
 from adjointsim.train import bridge
 from adjointsim.train import data as datamod
 from adjointsim.train.model import NeuralStepper
@@ -514,3 +514,15 @@ def test_rollback_option_is_checked_and_old_checkpoints_resume(tiny, tmp_path):
     save_checkpoint(ckpt, path)
     train(_config(tiny, tmp_path / "old", max_iterations=4), resume=True, progress=False)
     assert len(load_checkpoint(path)["history"]) == 4
+
+
+def test_overwrite_never_discards_somebody_elses_files(tiny, tmp_path):
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "config.json").write_text('{"owner": "someone else"}')
+    (theirs / "notes.txt").write_text("mine")
+    for overwrite in (False, True):
+        with pytest.raises(RunExists, match="another run or other files"):
+            train(_config(tiny, theirs), overwrite=overwrite, progress=False)
+    assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
+    assert (theirs / "notes.txt").exists()
