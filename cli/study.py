@@ -37,7 +37,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     json_option(p, "also write one object per cell here")
     p.add_argument("--reuse", type=Path, default=None, metavar="ROWS",
                    help="finished rows of an earlier run (its --json or rows.json file, e.g. "
-                   "one committed under docs/): those cells are not run again")
+                   "one committed under docs/results/): those cells are not run again")
     progress_option(p)
     p.set_defaults(size="full")
 

@@ -54,7 +54,8 @@ class BurgersPinnConfig:
     #: uniform: inverse-Dirichlet fails here. With the residual as its reference (the authors'
     #: choice for Poisson) the data weight collapses to ~0; with the largest spread as the
     #: reference the residual weight grows to ~1e6. Either way the network settles on u ≈ 0,
-    #: which satisfies the residual and the boundary values (docs/fit-burgers-id-residual.*)
+    #: which satisfies the residual and the boundary values
+    #: (docs/results/fit/fit-burgers-id-residual.*)
     weighting: str = "uniform"
     reference: str = "max"
     every: int = 5

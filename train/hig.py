@@ -32,7 +32,8 @@ b·d_y physics rows; h: the layer's input), so J Jᵀ and Jᵀ w come from per-l
 explicit route to 1e-15 relative.
 
 Cost (``python benchmarks/hig.py``, one thread, float64, medians; a recorded output is
-``docs/bench-hig-2026-11-25.txt``): one oscillators update (batch 128, 512 rows) 95 ms =
+``docs/results/benchmarks/bench-hig-2026-11-25.txt``):
+one oscillators update (batch 128, 512 rows) 95 ms =
 network 2% + physics 22% + decomposition 68% (nearly all of it the eigendecomposition of the
 512 × 512 Gram matrix) + apply 1%. The direction of one update by layer factors against the
 explicit J's Gram matrix and QR + SVD: oscillators 80 ms against 135 and 307; quantum 100

@@ -19,7 +19,8 @@ from adjointsim.cli import COMMANDS
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
-#: the pages written by hand (the others under docs/ are committed results, or generated)
+#: the pages written by hand (solvers.md and cli.md are completed at build time; the committed
+#: results, with the pages that report them, are under docs/results/, one folder per study)
 PAGES = ["index.md", "concepts.md", "solvers.md", "cli.md", "api.md", "results.md",
          *sorted(str(p.relative_to(DOCS)) for p in (DOCS / "howto").glob("*.md"))]
 
@@ -76,15 +77,24 @@ def test_the_site_builds_strictly_and_names_every_solver_and_command(tmp_path):
         assert f'id="{anchor}"' in api, f"the API reference lacks {anchor}"
 
 
+RESULT_SUFFIXES = {".png", ".json", ".txt", ".csv", ".md"}
+
+
 def test_the_results_page_links_every_committed_result():
     page = (DOCS / "results.md").read_text(encoding="utf-8")
     linked = set(re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", page))
-    own = {"hooks.py", *PAGES}
-    results = [p.name for p in DOCS.iterdir()
-               if p.is_file() and p.name not in own and p.suffix in
-               {".png", ".json", ".txt", ".csv", ".md"}]
-    missing = sorted(set(results) - linked)
+    results = {p.relative_to(DOCS).as_posix() for p in (DOCS / "results").rglob("*")
+               if p.is_file() and p.suffix in RESULT_SUFFIXES}
+    missing = sorted(results - linked)
     assert not missing, f"docs/results.md does not link these committed results: {missing}"
+    broken = sorted(link for link in linked if link.startswith("results/")
+                    and not (DOCS / link).is_file())
+    assert not broken, f"docs/results.md links files that do not exist: {broken}"
+    # A result written straight into docs/ would sit among the pages, unlinked from its study.
+    loose = sorted(p.name for p in DOCS.iterdir()
+                   if p.is_file() and p.suffix in RESULT_SUFFIXES
+                   and p.name not in {*PAGES, "results-notes.md"})
+    assert not loose, f"these belong under docs/results/<study>/, not in docs/: {loose}"
 
 
 def python_blocks() -> list:
