@@ -52,7 +52,7 @@ def text_of(page: Path) -> str:
 def test_the_site_builds_strictly_and_names_every_solver_and_command(tmp_path):
     # One build for every check: under xdist, separate tests could each build the site.
     proc = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "--site-dir",
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir",
          str(tmp_path)],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
         env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})

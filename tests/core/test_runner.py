@@ -158,7 +158,8 @@ def test_a_worker_address_and_ctrl_c_while_waiting_for_workers(scheduler, tmp_pa
     monkeypatch.setattr(distributed.Client, "wait_for_workers", interrupted)
     with pytest.raises(KeyboardInterrupt):
         runner.run("runner-test", tmp_path / "c", "ok", 1, cluster=scheduler, progress=False)
-    assert len(closed) == 1 and closed[0].status == "closed"
+    # closed (distributed may call close() again from within itself, under load)
+    assert closed and all(c.status == "closed" for c in closed)
 
 
 class _Silent(socketserver.BaseRequestHandler):
