@@ -9,8 +9,11 @@ from .options import config_flags, overrides, run_options, threads_option
 
 _HELPS = {
     "k": "the Poisson wavenumber: ω = kπ",
-    "weighting": "the loss weights: uniform, inverse-Dirichlet (id), max/avg (maxavg), or the "
-                 "Poisson problem's analytic ones (fixed, analytic)",
+    "weighting": "how the loss terms are balanced: fixed weights (uniform; the Poisson "
+                 "problem's analytic epsilon-optimal, also fixed/analytic), weights from the "
+                 "terms' gradients (inverse-dirichlet or id, max-avg or maxavg, gradnorm, ntk), "
+                 "from the losses (softadapt, relobralo), or a combined direction (mgda, pcgrad, "
+                 "config)",
     "reference": "the inverse-Dirichlet reference term: the problem's (res) or the term of "
                  "largest gradient spread (max)",
     "epochs": "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000)",

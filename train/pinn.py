@@ -75,8 +75,9 @@ REPORTED = {
 }
 #: the weightings only Poisson provides for: its analytic weights, its per-sample residuals
 NEEDS_POISSON = ("epsilon-optimal", "ntk")
-#: collocation points (and a quarter as many per edge) whose residuals give the NTK weights
-NTK_POINTS = 64
+#: collocation points (and a quarter as many per edge) whose residuals give the NTK weights:
+#: each is a reverse pass of its own on the Taylor route, which cannot batch them
+NTK_POINTS = 32
 #: consecutive non-finite losses after which a run is given up (full batch: the same
 #: parameters give the same loss, so skipping cannot recover)
 MAX_SKIPS = 10

@@ -223,7 +223,7 @@ def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["heat"], "invalid choice: 'heat'"),
-    (["poisson", "--weighting", "gradnorm"], "invalid choice: 'gradnorm'"),
+    (["poisson", "--weighting", "gradnrom"], "invalid choice: 'gradnrom'"),
     (["poisson", "--epochs", "many"], "argument --epochs: 'many' is not an integer"),
     (["poisson", "--edge-points", "1e9"], "argument --edge-points: '1e9' is not an integer"),
     (["poisson", "--reference", "bc"], "invalid choice: 'bc'"),
@@ -243,7 +243,8 @@ def test_help_says_what_0_means_and_lists_the_choices(capsys, monkeypatch):
     assert "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000)" in text
     assert "0: the problem's (poisson 50, sobolev 64, ks-inverse 50)" in text
     for choices in ("{poisson,sobolev,ks-inverse}", "{res,max}", "{taylor,autograd}",
-                    "{uniform,inverse-dirichlet,max-avg,fixed,id,maxavg,analytic}"):
+                    "{uniform,epsilon-optimal,inverse-dirichlet,max-avg,mgda,gradnorm,softadapt,"
+                    "relobralo,ntk,pcgrad,config,id,maxavg,analytic,fixed}"):
         assert choices in text
     for flag in ("--out", "--resume", "--overwrite", "--config", "--seed", "--threads",
                  "--no-progress"):

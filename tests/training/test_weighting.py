@@ -1,6 +1,7 @@
-"""Loss weighting (train/weighting.py): hand-computed updates, guards, and use on a loss through
-a solver (the guidance task's state cost + control cost, gradients via the hand-written
-adjoint)."""
+"""Loss weighting (train/weighting.py): every scheme against a dense reference computed here
+(hand computations, scipy's QP, explicit projections and Jacobians), guards, the batched
+per-term gradients, use on a loss through a solver (the guidance task's state cost + control
+cost, gradients via the hand-written adjoint), and a tiny PINN run per scheme."""
 
 import math
 
@@ -10,7 +11,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from adjointsim.train.weighting import Weighting
+from adjointsim.train.weighting import (
+    RULES,
+    SCHEMES,
+    Weighting,
+    canonical_rule,
+    scheme_name,
+    term_gradients,
+)
 
 RES = torch.tensor([1.0, -1.0, 1.0, -1.0], dtype=torch.float64)  # std 1, max|.| 1
 
@@ -76,8 +84,8 @@ def test_uniform_and_fixed_never_change_and_bad_options_are_named():
     assert Weighting(["a", "b"]).update(0, {"a": RES, "b": 0 * RES}) == {"a": 1.0, "b": 1.0}
     w = Weighting(["a", "b"], "analytic", fixed={"a": 0.25})
     assert w.update(0, {"a": RES, "b": RES}) == {"a": 0.25, "b": 1.0} and not w.due(0)
-    with pytest.raises(ValueError, match="unknown weighting 'gradnorm'"):
-        Weighting(["a"], "gradnorm")
+    with pytest.raises(ValueError, match="unknown weighting 'nope'"):
+        Weighting(["a"], "nope")
     with pytest.raises(ValueError, match="reference term 'x'"):
         Weighting(["a"], "id", reference="x")
     with pytest.raises(ValueError, match="max-avg weighting needs a reference"):
@@ -158,3 +166,308 @@ def test_terms_join_one_after_another_and_absent_ones_keep_their_weights():
     assert m.update(0, {"data": RES}) == {"data": 1.0, "res": 1.0}  # its reference is absent
     with pytest.raises(ValueError, match=r"unknown term\(s\) \['x'\]"):
         w.update(3, {"x": RES})
+
+
+# ----------------------------------------------------------------------------- every scheme
+def _net(seed=0, n_in=2):
+    torch.manual_seed(seed)
+    net = torch.nn.Sequential(torch.nn.Linear(n_in, 6), torch.nn.Tanh(), torch.nn.Linear(6, 1))
+    return net.double()
+
+
+def _flat_grad(loss, params):
+    grads = torch.autograd.grad(loss, params, retain_graph=True, materialize_grads=True)
+    return torch.cat([g.reshape(-1) for g in grads])
+
+
+def _two_term_losses(net, seed=1):
+    torch.manual_seed(seed)
+    x = torch.randn(12, 2, dtype=torch.float64)
+    u = net(x)
+    return {"fit": ((u - torch.sin(x[:, :1])) ** 2).mean(),
+            "reg": 3.0 * (u.mean() + 2.0) ** 2}
+
+
+def test_batched_per_term_gradients_equal_separate_passes():
+    net = _net()
+    params = list(net.parameters())
+    terms = _two_term_losses(net)
+    got = term_gradients(torch.stack(list(terms.values())), params, retain_graph=True)
+    for row, loss in zip(got, terms.values()):
+        torch.testing.assert_close(row, _flat_grad(loss, params), rtol=1e-12, atol=1e-14)
+
+
+def test_the_registry_names_every_scheme_and_the_old_names_still_load():
+    assert set(RULES) == {"uniform", "inverse-dirichlet", "max-avg", "mgda", "epsilon-optimal",
+                          "gradnorm", "softadapt", "relobralo", "ntk", "pcgrad", "config"}
+    assert scheme_name("fixed") == scheme_name("analytic") == "epsilon-optimal"
+    assert canonical_rule("fixed") == "fixed"  # recorded runs resume under their name
+    old = {"rule": "fixed", "weights": {"res": 0.1, "bc": 0.9}, "history": []}  # no "scheme"
+    w = Weighting(["res", "bc"], "epsilon-optimal", fixed={"res": 0.1, "bc": 0.9})
+    w.load_state_dict(old)
+    assert w.weights == {"res": 0.1, "bc": 0.9}
+    with pytest.raises(ValueError, match="does not match"):
+        Weighting(["res", "bc"], "mgda").load_state_dict(old)
+
+
+def _grads(*rows):
+    return torch.tensor(rows, dtype=torch.float64)
+
+
+def _mgda_reference(g):
+    """min ‖Σ α_k g_k‖² on the simplex by scipy's SLSQP."""
+    from scipy.optimize import minimize
+
+    gram = (g @ g.T).numpy()
+    k = len(gram)
+    res = minimize(lambda a: a @ gram @ a, np.full(k, 1.0 / k), jac=lambda a: 2 * gram @ a,
+                   bounds=[(0, 1)] * k, method="SLSQP", options={"ftol": 1e-15, "maxiter": 500},
+                   constraints=[{"type": "eq", "fun": lambda a: a.sum() - 1}])
+    return res.x
+
+
+@pytest.mark.parametrize("rows", [
+    [(1.0, 0.0, 2.0), (-0.5, 1.0, 0.3)],  # two terms: the closed form is checked too
+    [(1.0, 0.0, 2.0), (-0.5, 1.0, 0.3), (0.2, -2.0, 0.5)],
+    [(1.0, 1.0, 0.0), (2.0, 2.0, 0.0), (0.0, 0.0, 1.0), (3.0, -1.0, 0.5)],  # a face inside
+    [(1.0, 0.0, 0.0), (5.0, 0.0, 0.0)],  # no conflict: the shorter gradient alone
+])
+def test_mgda_is_the_min_norm_point_of_the_convex_hull(rows):
+    g = _grads(*rows)
+    names = [f"t{i}" for i in range(len(g))]
+    w = Weighting(names, "mgda")
+    got = np.array([w.update(0, dict(zip(names, g)))[n] for n in names])
+    ref = _mgda_reference(g)
+    assert got.sum() == pytest.approx(1.0) and (got >= 0).all()
+    assert got @ (g @ g.T).numpy() @ got == pytest.approx(ref @ (g @ g.T).numpy() @ ref,
+                                                         rel=1e-7, abs=1e-12)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    if len(g) == 2:  # α₁ = clip((g₂ − g₁)·g₂ / ‖g₁ − g₂‖², 0, 1)
+        a = float((g[1] - g[0]) @ g[1] / ((g[0] - g[1]) @ (g[0] - g[1])))
+        assert got[0] == pytest.approx(min(max(a, 0.0), 1.0))
+
+
+def test_config_matches_its_closed_form_with_a_pseudo_inverse():
+    g = _grads((1.0, 0.2, -0.3, 0.0), (-0.4, 1.0, 0.1, 0.5), (0.3, -0.2, 2.0, 0.1))
+    unit = g / g.norm(dim=1, keepdim=True)
+    gu = torch.linalg.pinv(unit) @ torch.ones(3, dtype=g.dtype)
+    gu = gu / gu.norm()
+    expected = (g @ gu).sum() * gu
+    got = SCHEMES["config"](Weighting(["a", "b", "c"], "config")).combine(g, 0)
+    torch.testing.assert_close(got, expected)
+    assert (g @ got > 0).all()  # no term's loss rises along it
+    cos = unit @ (got / got.norm())
+    torch.testing.assert_close(cos, cos.mean().expand(3))  # equal angle to every gradient
+
+
+def _projected(gi, others):
+    for gj in others:
+        dot = gi @ gj
+        if dot < 0:
+            gi = gi - dot / (gj @ gj) * gj
+    return gi
+
+
+def test_pcgrad_matches_explicit_projections():
+    a, b = _grads((1.0, 1.0, 0.0), (-1.0, 0.5, 1.0))  # conflict: a·b = −0.5
+    w = Weighting(["a", "b"], "pcgrad")
+    got = w.scheme.combine(torch.stack([a, b]), 3)
+    a_pc, b_pc = a - (a @ b) / (b @ b) * b, b - (a @ b) / (a @ a) * a
+    torch.testing.assert_close(got, a_pc + b_pc)
+    assert a_pc @ b == pytest.approx(0.0, abs=1e-12) and b_pc @ a == pytest.approx(0.0, abs=1e-12)
+    # three terms, only c conflicting with a and b, which agree: any order gives the same
+    c = _grads((-1.0, -1.0, 0.1))[0]
+    b = _grads((1.0, 0.2, 0.3))[0]
+    got = Weighting(["a", "b", "c"], "pcgrad").scheme.combine(torch.stack([a, b, c]), 7)
+    expected = _projected(a, [c]) + _projected(b, [c]) + _projected(c, [a, b])
+    torch.testing.assert_close(got, expected)
+    same = Weighting(["a", "b"], "pcgrad").scheme.combine(torch.stack([a, b]), 0)
+    torch.testing.assert_close(same, a + b)  # no conflict: the plain sum
+
+
+def test_ntk_weights_are_traces_of_an_explicit_jacobian():
+    net = _net(2)
+    params = list(net.parameters())
+    torch.manual_seed(3)
+    x_in, x_bc = torch.randn(7, 2, dtype=torch.float64), torch.randn(3, 2, dtype=torch.float64)
+
+    def residuals():
+        return {"res": net(x_in)[:, 0] - 1.0, "bc": 10.0 * net(x_bc)[:, 0]}
+
+    r = residuals()
+    traces = {}
+    for n, v in r.items():  # the Jacobian row by row, each sample its own reverse pass
+        jac = torch.stack([_flat_grad(v[i], params) for i in range(len(v))])
+        traces[n] = float(torch.trace(jac @ jac.T)) / len(v)
+    total = sum(traces.values())
+    w = Weighting(["res", "bc"], "ntk", alpha=1.0)
+    losses = {n: (v**2).mean() for n, v in r.items()}
+    g = {n: _flat_grad(v, params) for n, v in losses.items()}
+    w.backward(losses, params, 0, residuals)
+    assert w.weights == pytest.approx({n: total / t for n, t in traces.items()}, rel=1e-10)
+    combined = torch.cat([p.grad.reshape(-1) for p in params])
+    torch.testing.assert_close(combined, sum(w.weights[n] * g[n] for n in g))
+    with pytest.raises(ValueError, match="needs each term's per-sample residuals"):
+        Weighting(["res", "bc"], "ntk").backward(residuals(), params, 0)
+
+
+def test_gradnorm_weight_update_by_hand():
+    w = Weighting(["a", "b"], "gradnorm")
+    # step 0: L(0) = (2, 1); ‖∇_W L‖ = (3, 1); r = (1, 1); G = (3, 1), Ḡ = 2: the targets are
+    # 2 and 2, so λ_a −= 0.025·3, λ_b += 0.025·1: (0.925, 1.025), sum 1.95, renormalised to 2
+    got = w.update(0, {"a": torch.tensor([3.0, 0.0]), "b": torch.tensor([0.0, 1.0])},
+                   {"a": 2.0, "b": 1.0})
+    lam = {"a": 2 * 0.925 / 1.95, "b": 2 * 1.025 / 1.95}
+    assert got == pytest.approx(lam)
+    # step 1: L = (1, 0.9): L̃ = (0.5, 0.9), r = (0.5/0.7, 0.9/0.7); ‖∇_W L‖ = (2, 2)
+    g = {"a": 2 * lam["a"], "b": 2 * lam["b"]}
+    mean_g = (g["a"] + g["b"]) / 2
+    target = {"a": mean_g * (0.5 / 0.7) ** 1.5, "b": mean_g * (0.9 / 0.7) ** 1.5}
+    new = {n: lam[n] - 0.025 * math.copysign(2.0, g[n] - target[n]) for n in lam}
+    got = w.update(1, {"a": torch.tensor([0.0, 2.0]), "b": torch.tensor([2.0, 0.0])},
+                   {"a": 1.0, "b": 0.9})
+    assert got == pytest.approx({n: 2 * v / sum(new.values()) for n, v in new.items()})
+    assert got["b"] > got["a"]  # the slower-training term gains weight
+
+
+def test_softadapt_by_hand_on_a_loss_history():
+    w = Weighting(["a", "b"], "softadapt")
+    history = [{"a": 5.0, "b": 1.0}, {"a": 4.0, "b": 1.5}, {"a": 3.5, "b": 1.2}]
+    assert w.update(0, losses=history[0]) == {"a": 1.0, "b": 1.0}  # no rate yet
+    for t in (1, 2):
+        s = {n: history[t][n] - history[t - 1][n] for n in "ab"}
+        e = {n: math.exp(0.1 * s[n]) for n in "ab"}
+        expected = {n: 2 * e[n] / (e["a"] + e["b"]) for n in "ab"}
+        assert w.update(t, losses=history[t]) == pytest.approx(expected, rel=1e-12)
+    assert w.weights["b"] > w.weights["a"]  # b rose last step
+
+
+def test_relobralo_by_hand_on_a_loss_history():
+    w = Weighting(["a", "b"], "relobralo", seed=4)
+    history = [{"a": 5.0, "b": 1.0}, {"a": 4.0, "b": 1.5}, {"a": 3.5, "b": 1.2},
+               {"a": 3.0, "b": 1.1}]
+
+    def bal(now, ref):
+        e = {n: math.exp(now[n] / (0.1 * ref[n])) for n in now}
+        return {n: 2 * e[n] / sum(e.values()) for n in now}
+
+    lam = {"a": 1.0, "b": 1.0}
+    assert w.update(0, losses=history[0]) == lam
+    for t in range(1, 4):
+        rho = float(np.random.default_rng([4, t]).random() < 0.999)
+        b0, b1 = bal(history[t], history[0]), bal(history[t], history[t - 1])
+        lam = {n: 0.999 * (rho * lam[n] + (1 - rho) * b0[n]) + 0.001 * b1[n] for n in lam}
+        assert w.update(t, losses=history[t]) == pytest.approx(lam, rel=1e-12)
+    # a lookback of ρ = 0 (drawn with probability 0.001) replaces the history by bal(t, 0)
+    w = Weighting(["a", "b"], "relobralo")
+    w.scheme.expected_rho = 0.0
+    w.update(0, losses=history[0])
+    b0, b1 = bal(history[1], history[0]), bal(history[1], history[0])
+    assert w.update(1, losses=history[1]) == pytest.approx(
+        {n: 0.999 * b0[n] + 0.001 * b1[n] for n in "ab"})
+
+
+@pytest.mark.parametrize("rule", ["softadapt", "relobralo", "gradnorm"])
+def test_loss_rules_keep_the_weights_on_non_finite_losses(rule):
+    w = Weighting(["a", "b"], rule)
+    grads = {"a": torch.tensor([1.0, 2.0]), "b": torch.tensor([0.5, 0.1])}
+    w.update(0, grads, {"a": 2.0, "b": 1.0})
+    w.update(1, grads, {"a": 1.0, "b": 0.5})
+    before = dict(w.weights)
+    w.update(2, grads, {"a": math.nan, "b": 0.5})
+    assert w.weights == before
+
+
+def test_state_dict_keeps_what_a_scheme_remembers():
+    w = Weighting(["a", "b"], "relobralo")
+    w.update(0, losses={"a": 2.0, "b": 1.0})
+    w.update(1, losses={"a": 1.0, "b": 1.0})
+    again = Weighting(["a", "b"], "relobralo")
+    again.load_state_dict(w.state_dict())
+    assert again.update(2, losses={"a": 0.5, "b": 0.7}) == w.update(2, losses={"a": 0.5,
+                                                                                "b": 0.7})
+
+
+# ----------------------------------------------------------------------------- any loss
+def _guidance_terms():
+    """The guidance task through the solver's adjoint: tracking (evader distance) and control
+    effort, two terms of a differentiable-physics loss."""
+    from adjointsim.train import bridge, control
+
+    task = control.get_task("guidance", 1.0)
+    torch.manual_seed(0)
+    net = task.net().double()
+    for m in net.modules():
+        if isinstance(m, torch.nn.Linear):
+            m.reset_parameters()
+    x = torch.from_numpy(task.initial_states(np.random.default_rng(0), 4))
+    state, effort = 0.0, 0.0
+    for _ in range(5):
+        c = task.control(net(x))
+        x = bridge.step(task.solver, x, c)
+        state = state + (x[:, :2, task.solver.drivers:] ** 2).sum(dim=1).mean()
+        effort = effort + 1e-3 * (c**2).mean()
+    return {"track": state, "effort": effort}, list(net.parameters())
+
+
+@pytest.mark.parametrize("rule", ["pcgrad", "config", "gradnorm"])
+def test_a_differentiable_physics_loss_takes_any_scheme(rule):
+    terms, params = _guidance_terms()
+    g = {n: _flat_grad(v, params) for n, v in terms.items()}
+    w = Weighting(list(terms), rule)
+    total = w.backward(terms, params, 0)
+    got = torch.cat([p.grad.reshape(-1) for p in params])
+    a, b = g["track"], g["effort"]
+    if rule == "pcgrad":
+        expected = _projected(a, [b]) + _projected(b, [a])
+    elif rule == "config":
+        unit = torch.stack([a / a.norm(), b / b.norm()])
+        gu = torch.linalg.pinv(unit) @ torch.ones(2, dtype=a.dtype)
+        expected = (torch.stack([a, b]) @ gu).sum() * gu / gu.norm() ** 2
+    else:  # the weights moved off 1 (the layer norms differ), and the update is Σ λ_k g_k
+        assert w.weights["track"] != 1.0 and sum(w.weights.values()) == pytest.approx(2.0)
+        expected = w.weights["track"] * a + w.weights["effort"] * b
+    torch.testing.assert_close(got, expected)
+    assert float(total) == pytest.approx(sum(w.weights[n] * float(v.detach())
+                                             for n, v in terms.items()))
+
+
+# ----------------------------------------------------------------------------- pinn
+@pytest.mark.parametrize("rule", [*RULES, "fixed"])
+def test_a_tiny_poisson_run_takes_every_scheme(rule, tmp_path):
+    from adjointsim.train.pinn import PinnConfig, train_run
+
+    cfg = PinnConfig(problem="poisson", k=2, weighting=rule, epochs=7, collocation=20,
+                     edge_points=4, width=8, depth=2, every=2, log_every=3)
+    result = train_run(cfg, tmp_path, progress=False, plot=False)
+    assert math.isfinite(result["rel_l2"]) and not result["diverged"]
+    assert result["weighting"] == rule
+    assert all(math.isfinite(v) and v >= 0 for v in result["weights"].values())
+
+
+@pytest.mark.parametrize("route, batched", [("autograd", True), ("taylor", False)])
+def test_poisson_terms_are_batched_where_the_graph_allows(route, batched):
+    """The Taylor route's hand-written reverse pass has no batching rule: its per-term
+    gradients are taken one after another, and equal separate passes either way."""
+    from adjointsim.train.pinn import PinnConfig, make_problem
+
+    problem = make_problem(PinnConfig(problem="poisson", collocation=30, edge_points=5,
+                                      width=8, depth=2, route=route))
+    model = problem.model()
+    params = list(model.parameters())
+    terms = problem.losses(model, route)
+    w = Weighting(["res", "bc"], "config")
+    rows = w.gradients(list(terms.values()), params)
+    assert w._batched is batched
+    for row, loss in zip(rows, terms.values()):
+        torch.testing.assert_close(row, _flat_grad(loss, params))
+
+
+def test_pinn_offers_every_scheme_and_refuses_what_a_problem_lacks():
+    from adjointsim.errors import UserError
+    from adjointsim.train.pinn import ACCEPTED, PinnConfig
+
+    assert set(RULES) <= set(ACCEPTED["weighting"]) and "fixed" in ACCEPTED["weighting"]
+    for rule in ("ntk", "epsilon-optimal", "fixed"):
+        with pytest.raises(UserError, match="no analytic weights and no per-sample residuals"):
+            PinnConfig(problem="sobolev", weighting=rule).validate()
