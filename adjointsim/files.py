@@ -11,6 +11,7 @@ JSON goes through :func:`json_text`: never NaN or Infinity (they are not JSON).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -46,6 +47,95 @@ def pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def log_axis(ax: Any, which: str = "y") -> None:
+    """Put the ``which`` axis (``"x"`` or ``"y"``) of ``ax`` on a log scale with tick labels
+    that read: powers of ten when the view holds three or more, else 1-2-5 or 1…9 multiples of
+    them, else (a view too narrow for three of those) evenly spaced values; every label writes
+    its tick exactly. matplotlib's own labels are missing in views under a decade, and repeat
+    in narrow ones (seven ticks all "7.43×10⁻³")."""
+    from matplotlib import ticker
+
+    locator, formatter = _log_tickers()
+    getattr(ax, f"set_{which}scale")("log")
+    axis = ax.yaxis if which == "y" else ax.xaxis
+    axis.set_major_locator(locator())
+    axis.set_major_formatter(formatter())
+    axis.set_minor_locator(locator(minor=True))
+    axis.set_minor_formatter(ticker.NullFormatter())
+
+
+@functools.cache
+def _log_tickers() -> tuple[type, type]:
+    """The locator and formatter of :func:`log_axis` (classes made on first use: matplotlib
+    is only imported by runs that draw)."""
+    import numpy as np
+    from matplotlib import ticker
+
+    def multiples(lo: float, hi: float, subs: tuple[float, ...]) -> list[float]:
+        decades = range(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1)
+        return [s * 10.0**e for e in decades for s in subs if lo <= s * 10.0**e <= hi]
+
+    class Locator(ticker.LogLocator):
+        """The ticks of :func:`log_axis`; ``minor``: the unlabelled ones between them."""
+
+        def __init__(self, minor: bool = False):
+            super().__init__(subs="auto" if minor else (1.0,))
+            self.minor = minor
+
+        def tick_values(self, vmin: float, vmax: float) -> Any:
+            lo, hi = sorted((vmin, vmax))
+            if not 0 < lo < hi < math.inf:
+                return super().tick_values(vmin, vmax)
+            if len(multiples(lo, hi, (1.0,))) >= 3:
+                return super().tick_values(vmin, vmax)  # decades, and minor ticks between
+            for subs, most in (((1.0, 2.0, 5.0), 8), (tuple(range(1, 10)), 9)):
+                major = multiples(lo, hi, subs)
+                if 3 <= len(major) <= most:
+                    if not self.minor:
+                        return np.array(major)
+                    return np.array([t for t in multiples(lo, hi, tuple(range(1, 10)))
+                                     if t not in major])
+            if self.minor:
+                return np.array([])
+            return ticker.MaxNLocator(nbins=5, steps=[1, 2, 5, 10]).tick_values(lo, hi)
+
+    def decimals(x: float) -> int:
+        """The decimals that write ``x`` exactly (to 1e-9 of it): a label never rounds."""
+        return next((d for d in range(16) if abs(round(x, d) - x) <= 1e-9 * abs(x)), 16)
+
+    class Formatter(ticker.Formatter):
+        """Each tick written exactly; evenly spaced ones with the same decimals throughout."""
+
+        def set_locs(self, locs: Any) -> None:
+            super().set_locs(locs)
+            lo, hi = sorted(self.axis.get_view_interval())
+            shown = [float(v) for v in locs if lo <= v <= hi and v > 0]
+            self.scientific = any(not -3 <= math.floor(math.log10(v)) <= 3 for v in shown)
+            self.uniform = None  # per tick (1, 2, 5, 10), unless evenly spaced (1.98, 1.99)
+            steps = np.diff(shown)
+            if steps.size > 1 and np.allclose(steps, steps[0], rtol=1e-6):
+                self.uniform = max(decimals(self._split(v)[0]) for v in shown)
+
+        def _split(self, x: float) -> tuple[float, int]:
+            if not self.scientific:
+                return x, 0
+            exponent = math.floor(math.log10(x))
+            return x / 10.0**exponent, exponent
+
+        def __call__(self, x: float, pos: int | None = None) -> str:
+            if not x > 0:
+                return ""
+            mantissa, exponent = self._split(x)
+            text = f"{mantissa:.{decimals(mantissa) if self.uniform is None else self.uniform}f}"
+            if not self.scientific:
+                return text
+            power = f"10^{{{exponent}}}"
+            return (f"$\\mathdefault{{{power}}}$" if text == "1" else
+                    f"$\\mathdefault{{{text}\\times{power}}}$")
+
+    return Locator, Formatter
 
 
 def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> None:

@@ -53,8 +53,10 @@ from .run import (
     SEEDS,
     Config,
     Interval,
+    check_memory,
     discard,
     finished_result,
+    holds_run,
     plot_history,
     refuse_foreign,
     require_checkpoint,
@@ -398,6 +400,12 @@ def run_fit(cfg: FitConfig, out: str | Path, resume: bool = False, overwrite: bo
         "params": {**data["params"], **cfg.start_values()}, "bounds": bounds,
         "method": cfg.method, "tikhonov": cfg.tikhonov, "smoothness": cfg.smoothness,
         "checkpoint": cfg.checkpoint}
+    u0 = data["u0"] if data["u0"] is not None else data["states"][0]
+    states = (cfg.checkpoint or given["n"] + 1) if given["n"] is not None else 1
+    check_memory(4 * states * np.asarray(u0).nbytes,
+                 f"--steps {given['n']} ({states} stored states of {np.asarray(u0).nbytes:,} "
+                 "bytes, and the adjoint's as many)", "choose fewer steps, or --checkpoint S to "
+                 "hold S states")
     try:
         problem(scene, obs, **given)  # every input checked before anything is written
     except StartOutsideBoundsError as e:
@@ -408,8 +416,9 @@ def run_fit(cfg: FitConfig, out: str | Path, resume: bool = False, overwrite: bo
                         f"{e.name}=VALUE, or wider --bounds {e.name}=LO:HI (a start moved onto "
                         "a bound would change the problem)") from None
     if overwrite:
+        if not holds_run(out, config):  # somebody else's files are never discarded
+            refuse_foreign(out, config)
         discard(out, RUN_FILES)
-        refuse_foreign(out, config)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "config.json", config)
     if prob is not None:

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from .errors import ConfigTypeError, Interrupted, RunExists, UserError
-from .files import json_text, pyplot, save_figure, write_text
+from .files import json_text, log_axis, pyplot, save_figure, write_text
 
 
 # ----------------------------------------------------------------------------- the config
@@ -188,26 +188,36 @@ def plot_history(path: str | Path, curves: dict[str, Sequence[dict]], x: str, y:
                  xlabel: str, ylabel: str, title: str = "", smooth: int = 0,
                  log: bool = True, ax: Any = None) -> None:
     """The history plot of every command: ``y`` against ``x``, one curve per label of
-    ``curves``; with ``smooth`` > 1 each gets its moving mean of that many rows beside it.
-    Non-finite values are left out. Drawn into ``ax`` when given (the caller saves)."""
+    ``curves``; with ``smooth`` > 1 each curve long enough gets its moving mean beside it, over
+    ``smooth`` rows or a third of the curve if that is shorter (at least 3), named by that
+    window. Non-finite values are left out; a curve of a few points shows them as dots. Drawn
+    into ``ax`` when given (the caller saves)."""
+    from matplotlib import ticker
+
     plt = pyplot()
     fig = None
     if ax is None:
         fig, ax = plt.subplots(figsize=(6, 3.5))
+    whole = True
     for label, rows in curves.items():
         pts = [(r[x], r[y]) for r in rows
                if isinstance(r.get(y), int | float) and math.isfinite(r[y])]
         if not pts:
             continue
         xs, ys = zip(*pts)
-        line, = ax.plot(xs, ys, lw=0.6 if smooth > 1 else 1.2,
-                        alpha=0.4 if smooth > 1 else 1.0, label=label)
-        if smooth > 1 and len(ys) >= 2 * smooth:
-            k = smooth
+        whole = whole and all(isinstance(v, int) for v in xs)
+        k = min(smooth, len(ys) // 3)
+        line, = ax.plot(xs, ys, lw=0.6 if k >= 3 else 1.2, alpha=0.4 if k >= 3 else 1.0,
+                        marker="o" if len(ys) <= 20 else None, ms=3, label=label)
+        if k >= 3:
             mean = [sum(ys[i - k + 1:i + 1]) / k for i in range(k - 1, len(ys))]
-            ax.plot(xs[k - 1:], mean, color=line.get_color(), label=f"{label}, mean of {k}")
+            ax.plot(xs[k - 1:], mean, color=line.get_color(),
+                    label=f"{label}, moving mean of {k} points")
     if log:
-        ax.set_yscale("log")
+        log_axis(ax)
+    if whole:  # epochs, iterations: no tick between two of them
+        ax.xaxis.set_major_locator(ticker.MaxNLocator(integer=True, steps=[1, 2, 5, 10],
+                                                      min_n_ticks=1))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:
@@ -270,11 +280,21 @@ def run_errors(out: Path) -> Iterator[None]:
                               "the command again") from None
         raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
             from None
-    except RunExists:
+    except (RunExists, FileNotFoundError):  # their messages name the file already
         raise
-    except OSError as e:  # the run directory cannot be made or written
+    except OSError as e:
+        if e.filename is not None and not _inside(Path(e.filename), out):
+            raise  # another file (an input): its own message names it
         raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
                       "writable directory") from None
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        path.resolve().relative_to(folder.resolve())
+    except ValueError:
+        return False
+    return True
 
 
 def finished_result(out: Path, resume: bool, config: dict | None = None,
@@ -285,6 +305,8 @@ def finished_result(out: Path, resume: bool, config: dict | None = None,
     is a directory without a run whose ``config.json`` is not ``config`` (somebody else's).
     A result without ``config``'s keys and ``keys`` is damaged."""
     result_path = out / "result.json"
+    if config is not None:
+        refuse_foreign(out, config)
     if result_path.exists():
         if resume:
             result = read_result(result_path)
@@ -300,8 +322,6 @@ def finished_result(out: Path, resume: bool, config: dict | None = None,
             return result
         raise RunExists(f"{out} holds a finished run; choose another --out, or start it again "
                         "with --overwrite")
-    if config is not None:
-        refuse_foreign(out, config)
     if (out / "checkpoint.pt").exists() and not resume:
         raise RunExists(f"{out} holds an unfinished run; continue it with --resume, or start it "
                         "again with --overwrite")

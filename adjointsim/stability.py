@@ -25,12 +25,14 @@ from __future__ import annotations
 import inspect
 import json
 import math
+import textwrap
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from . import registry
+from .files import log_axis
 from .runner import Study, register_study
 from .stepper import Stepper
 
@@ -197,7 +199,8 @@ def _family(scheme: str) -> str:
 def report(rows: list[dict], out: Path) -> str:
     """``OUT/stability.md`` (table) and ``OUT/stability.png``: per scheme family, the largest
     stable Δt against the grid size (markers; triangles: stable up to the search cap) and the
-    stated limit (dashed)."""
+    stated limit (dashed); the schemes without a grid size (none, or an ``n`` that counts
+    something else, as the oscillators') side by side in one more panel."""
     from adjointsim.files import pyplot, save_figure, write_text
 
     text = table(rows)
@@ -205,13 +208,17 @@ def report(rows: list[dict], out: Path) -> str:
     plt = pyplot()
 
     families: dict[str, list[dict]] = {}
+    gridless: list[dict] = []
     for r in rows:
         if r["n"]:
             families.setdefault(_family(r["scheme"]), []).append(r)
-    if not families:
+        else:
+            gridless.append(r)
+    panels = len(families) + bool(gridless)
+    if not panels:
         return text
-    cols = min(4, len(families))
-    nrows = -(-len(families) // cols)
+    cols = min(4, panels)
+    nrows = -(-panels // cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.3 * nrows), squeeze=False)
     for ax, (family, rs) in zip(axes.flat, sorted(families.items())):
         lines = sorted({(r["scheme"], json.dumps(r.get("coefficients", {}))) for r in rs})
@@ -229,18 +236,45 @@ def report(rows: list[dict], out: Path) -> str:
             ax.plot(ns, found, "o-", color=color, label=label, ms=4)
             ax.plot(ns, capped, "^", color=color, ms=6)
             ax.plot(ns, stated, "--", color=color, lw=1)
-        ax.set(xscale="log", yscale="log", title=family, xlabel="grid size n",
-               ylabel="largest stable Δt")
+        ax.set(xscale="log", title=family, xlabel="grid size n", ylabel="largest stable Δt")
+        log_axis(ax)
         grid = sorted({r["n"] for r in rs})
         ax.set_xticks(grid, [str(g) for g in grid])
-        ax.minorticks_off()
+        ax.xaxis.set_minor_locator(plt.NullLocator())
         ax.legend(fontsize=6)
-    for ax in axes.flat[len(families):]:
+    if gridless:
+        _plot_gridless(axes.flat[len(families)], gridless)
+    for ax in axes.flat[panels:]:
         ax.axis("off")
-    fig.suptitle("largest Δt with a bounded rollout (circles; triangles: bounded up to the "
-                 "search cap), stated limit (dashed)", fontsize=10)
+    # wrapped to the figure's width (about 0.55 em a character): one panel is 4.2 inches
+    chars = int(fig.get_figwidth() * 72 / (0.55 * 10))
+    fig.suptitle(textwrap.fill("largest Δt with a bounded rollout (circles; triangles: bounded "
+                               "up to the search cap), stated limit (dashed)", chars),
+                 fontsize=10)
     save_figure(fig, out / "stability.png", dpi=100)
     return text
+
+
+def _plot_gridless(ax, rows: list[dict]) -> None:
+    """One column per scheme and coefficient set: found (circle; triangle at the cap) and
+    stated (bar) limits."""
+    rows = sorted(rows, key=lambda r: (r["scheme"], json.dumps(r.get("coefficients", {}))))
+    for k, r in enumerate(rows):
+        color = f"C{k % 10}"
+        if r["found"] is None:
+            ax.plot(k, r["default_dt"] * CAP, "^", color=color, ms=6)
+        else:
+            ax.plot(k, r["found"], "o", color=color, ms=5)
+        if r["stated"] is not None:
+            ax.plot(k, r["stated"], "_", color=color, ms=16, mew=1.5)
+    names = [" ".join([r["scheme"], *(f"{key}={v:g}" for key, v in
+                                      r.get("coefficients", {}).items())]) for r in rows]
+    ax.set_xticks(range(len(rows)), names, rotation=20 if len(rows) > 2 else 0, ha="right"
+                  if len(rows) > 2 else "center", fontsize=8)
+    ax.set_xlim(-0.6, len(rows) - 0.4)
+    ax.set(title="without a grid size", xlabel="scheme (stated limit: bar)",
+           ylabel="largest stable Δt")
+    log_axis(ax)
 
 
 register_study(Study("stability", tuple(SIZES), cells, run_cell, report))

@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 
 from adjointsim import __version__, registry
+from adjointsim.compiling import announce_compiles
 from adjointsim.errors import UserError
 
 #: every command, its module under ``adjointsim.cli`` and its one line of help
@@ -77,6 +78,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         args = build_parser(command).parse_args(argv)
+        if getattr(args, "progress", True) and not os.environ.get("TQDM_DISABLE"):
+            announce_compiles()  # silenced with the progress bars whose stall it explains
         status = args._command(args)
         sys.stdout.flush()
         return status

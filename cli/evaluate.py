@@ -21,15 +21,20 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from adjointsim.errors import UserError
     from adjointsim.files import json_text, write_json
+    from adjointsim.run import holds_run
     from adjointsim.train import data
     from adjointsim.train.evaluate import evaluate
     from adjointsim.train.studies.neural_steppers import STUDIES, load_model
-    from adjointsim.train.trainer import DTYPES
+    from adjointsim.train.trainer import DTYPES, TrainConfig
 
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run} does not exist or is not a directory; give the "
                                 "--out directory of an `adjointsim train` run")
+    if not holds_run(args.run, TrainConfig().as_dict()):
+        raise UserError(f"{args.run} holds no run of `adjointsim train` (no config.json of its "
+                        "keys); eval evaluates neural time-steppers trained by that command")
     if not (args.run / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{args.run} holds no checkpoint.pt: not a training run, or one "
                                 "that saved nothing yet")

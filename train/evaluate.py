@@ -21,7 +21,7 @@ import torch
 
 from adjointsim import NonFiniteInputError, NonFiniteStateError
 from adjointsim.errors import UserError
-from adjointsim.files import pyplot, save_figure
+from adjointsim.files import log_axis, pyplot, save_figure
 
 from .data import Dataset, Split
 from .model import NeuralStepper
@@ -31,6 +31,8 @@ TEST_SPLITS = ("interpolation", "extrapolation")
 BLOW_UPS = (NonFiniteInputError, FloatingPointError)
 #: steps shown in the error-over-time plots
 PLOT_STEPS = 200
+#: the name of each problem's state, on the colour bars of its rollout plots
+QUANTITIES = {"ks": "u", "kolmogorov": "vorticity ω"}
 
 
 @torch.no_grad()
@@ -169,7 +171,8 @@ def evaluate(
         corr_times.append(ct)
         stable.append(ok)
         if plots is not None:
-            plot_rollout(long, ref, Path(plots) / f"rollout-{name}.png", horizon, coarse)
+            plot_rollout(long, ref, Path(plots) / f"rollout-{name}.png", horizon, coarse,
+                         QUANTITIES.get(dataset.problem.name, "u"))
     results["rel_error"] = float(np.mean(np.concatenate(errors)))
     results["coarse_rel_error"] = (
         float(np.median(np.concatenate(coarse_errors))) if coarse_errors else None
@@ -180,40 +183,56 @@ def evaluate(
 
 
 def plot_rollout(
-    pred: np.ndarray, ref: np.ndarray, path: Path, horizon: int, coarse: np.ndarray | None = None
+    pred: np.ndarray, ref: np.ndarray, path: Path, horizon: int, coarse: np.ndarray | None = None,
+    quantity: str = "u",
 ) -> None:
-    """Space–time (1D) or snapshots (2D) of the first rollout against the reference, and the
-    error over time of all rollouts (and of the coarse solver alone, if given, until it blows
-    up)."""
+    """Space–time (1D) or snapshots (2D) of the first rollout against the reference, each with
+    a colour bar of ``quantity``, and the error over time of all rollouts (and of the coarse
+    solver alone, if given, until it blows up)."""
+    from matplotlib import ticker
+
     plt = pyplot()
 
     path.parent.mkdir(parents=True, exist_ok=True)
     t = min(pred.shape[1], 4 * horizon + 1, PLOT_STEPS)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    fig, axes = plt.subplots(1, 3, figsize=(13.5, 3.6))
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad="0.75")  # grey: the rollout blew up
+    blown = np.flatnonzero(~np.all(np.isfinite(pred[0, :t]), axis=tuple(range(1, pred.ndim - 1))))
     if pred.ndim == 4:  # (S, T, 1, N): space–time diagrams
         lim = np.max(np.abs(ref[0, :t, 0]))
+        after = f" (grey: blown up from step {blown[0]})" if blown.size else ""
         for ax, data, title in ((axes[0], ref[0, :t, 0], "reference"),
-                                (axes[1], pred[0, :t, 0], "model")):
-            ax.imshow(data.T, aspect="auto", origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
-            ax.set(title=title, xlabel="step", ylabel="x")
+                                (axes[1], pred[0, :t, 0], f"model{after}")):
+            im = ax.imshow(np.ma.masked_invalid(data.T), aspect="auto", origin="lower", cmap=cmap,
+                           vmin=-lim, vmax=lim)
+            ax.set(title=title, xlabel="step", ylabel="grid point")
+            fig.colorbar(im, ax=ax, label=quantity)
     else:  # (S, T, 1, N, N): final snapshots
         k = min(t - 1, horizon)
         lim = np.max(np.abs(ref[0, k, 0]))
+        after = f" (grey: blown up from step {blown[0]})" if blown.size and blown[0] <= k else ""
         for ax, data, title in ((axes[0], ref[0, k, 0], f"reference, step {k}"),
-                                (axes[1], pred[0, k, 0], f"model, step {k}")):
-            ax.imshow(data.T, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
-            ax.set(title=title)
-    def shown(curve: np.ndarray) -> np.ndarray:
-        # A relative error above 10 only says "blown up"; leave it out of the log axis.
-        with np.errstate(invalid="ignore"):
-            return np.where(np.isfinite(curve) & (curve < 10), curve, np.nan)
+                                (axes[1], pred[0, k, 0], f"model, step {k}{after}")):
+            im = ax.imshow(np.ma.masked_invalid(data.T), origin="lower", cmap=cmap, vmin=-lim,
+                           vmax=lim)
+            ax.set(title=title, xlabel="grid point x", ylabel="grid point y")
+            fig.colorbar(im, ax=ax, label=quantity)
 
-    axes[2].semilogy(np.arange(t), shown(error_over_time(pred[:, :t], ref[:, :t])), label="model")
+    def shown(curve: np.ndarray) -> np.ndarray:
+        # A relative error above 10 only says "blown up", and 0 (the first frame) has no place
+        # on a log axis: leave both out.
+        with np.errstate(invalid="ignore"):
+            return np.where(np.isfinite(curve) & (curve > 0) & (curve < 10), curve, np.nan)
+
+    axes[2].plot(np.arange(t), shown(error_over_time(pred[:, :t], ref[:, :t])), label="model")
     if coarse is not None:
         tc = min(t, coarse.shape[1])
-        axes[2].semilogy(np.arange(tc), shown(error_over_time(coarse[:, :tc], ref[:, :tc])), "r--",
-                         label="coarse solver alone")
-        axes[2].legend()
-    axes[2].axvline(horizon, color="gray", lw=0.5)
-    axes[2].set(title="relative error over time", xlabel="step")
+        axes[2].plot(np.arange(tc), shown(error_over_time(coarse[:, :tc], ref[:, :tc])), "r--",
+                     label="coarse solver alone")
+    axes[2].axvline(horizon, color="gray", lw=0.5, label=f"horizon ({horizon} steps)")
+    log_axis(axes[2])
+    axes[2].xaxis.set_major_locator(ticker.MaxNLocator(integer=True, steps=[1, 2, 5, 10]))
+    axes[2].set(title="relative error over time, all rollouts", xlabel="step",
+                ylabel="mean (model − reference)² / max reference²")
+    axes[2].legend(fontsize=8)
     save_figure(fig, path, dpi=110)

@@ -33,6 +33,8 @@ from adjointsim.run import (
     SEEDS,
     Config,
     Interval,
+    check_memory,
+    differing,
     discard,
     holds_run,
     plot_history,
@@ -129,6 +131,14 @@ class TrainConfig(Config):
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
     def check(self, where: str) -> None:
+        # The weights alone, with their gradient and Adam's two moments (kernel 3, the deepest
+        # of the networks): a bound from below, enough to refuse what cannot be allocated.
+        layers = 2 * max(self.blocks, 4) + 8
+        weights = layers * self.width**2 * 3 ** PROBLEMS[self.problem].dims
+        check_memory(4 * weights * torch.finfo(DTYPES[self.dtype]).bits // 8,
+                     f"config keys 'width' and 'blocks'{where}: a {self.net} of width "
+                     f"{self.width} and {self.blocks} blocks (its weights, their gradient and "
+                     "Adam's moments)", "choose a smaller network")
         if not (self.rollback == 0 or self.rollback > 1):
             raise UserError(f"config key 'rollback'{where}: {self.rollback!r} is not "
                             "0 (off) or a number > 1")
@@ -168,6 +178,9 @@ def _plan(cfg: TrainConfig, n_windows_fn) -> list[dict]:
                      "iterations": int(math.ceil(epochs * per_epoch)), "per_epoch": per_epoch})
     return plan
 
+
+#: keys a run may be resumed with other values of
+RESUMABLE = ("out", "threads", "max_iterations")
 
 #: what a run directory holds besides config.json: replaced by ``overwrite``
 RUN_FILES = ("history.csv", "training.png", "results.json", "metrics.json", "rollout-*.png")
@@ -232,10 +245,12 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         ckpt = load_checkpoint(ckpt_path, recover=_RECOVER)
         # options added since the checkpoint was written take their defaults
         theirs = asdict(TrainConfig()) | ckpt["config"]
-        ours = asdict(cfg) | {"max_iterations": theirs["max_iterations"]}
+        # where the run lives, how many threads and when to stop do not change its result
+        ours = asdict(cfg) | {k: theirs[k] for k in RESUMABLE}
+        if str(Path(theirs["data"]).resolve()) == str(Path(cfg.data).resolve()):
+            ours["data"] = theirs["data"]
         if theirs != ours:
-            differ = sorted(k for k in ours.keys() | theirs.keys()
-                            if ours.get(k) != theirs.get(k))
+            differ = differing(ours, theirs)
             raise UserError(f"{ckpt_path} was written with another configuration (differs in "
                             f"{', '.join(differ)}); train into a new --out or use --overwrite")
         restore(model, ckpt["model"], ckpt_path)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adjointsim.files import pyplot, save_figure, write_text
+from adjointsim.files import log_axis, pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
 from .. import data as datamod
@@ -174,34 +174,57 @@ def write_summary(rows: list[dict], out: Path, horizon: int) -> None:
     if coarse:
         ax.axhline(coarse[0], color="r", lw=1, ls="--", label="coarse solver alone")
         ax.legend()
-    ax.set_yscale("log")
+    log_axis(ax)
     ax.set_ylabel(f"relative error over {horizon} steps")
     save_figure(fig, out / "study.png", dpi=120)
     _plot_curves(rows, out, plt)
 
 
+#: line styles of seeds 0, 1, ... (repeated past the last)
+SEED_STYLES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)), (0, (1, 3)), (0, (8, 3)))
+
+
 def _plot_curves(rows: list[dict], out: Path, plt) -> None:
-    """Training loss against update per cell (medians of blocks of 200 updates), one panel
-    per setup, one colour per mode: where a seed's training settles, and when it went astray.
-    ONE's loss is one step's error, NOG's and WIG's the mean over the unrolled steps."""
+    """Training loss against update per cell (medians of blocks of up to 200 updates, a
+    twentieth of the run), one panel per setup, one colour per mode and one line style per
+    seed: where a seed's training settles, and when it went astray. ONE's loss is one step's
+    error, NOG's and WIG's the mean over the unrolled steps."""
+    from matplotlib.lines import Line2D
+
     setups = sorted({r["setup"] for r in rows})
     modes = sorted({r["mode"] for r in rows})
     colours = dict(zip(modes, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    # drawn in this order, each thinner than the last: a curve on top of another's (NOG and
+    # WIG's can coincide) leaves the one below showing at its edges
+    widths = {m: 1.0 + 0.7 * (len(modes) - 1 - i) for i, m in enumerate(modes)}
     fig, axes = plt.subplots(1, len(setups), figsize=(6 * len(setups), 3.8), squeeze=False)
     for ax, setup in zip(axes[0], setups):
-        for r in sorted((r for r in rows if r["setup"] == setup), key=lambda r: r["id"]):
+        blocks, seeds = set(), set()
+        for r in sorted((r for r in rows if r["setup"] == setup),
+                        key=lambda r: (r["mode"], r["seed"])):
             path = out / r["id"] / "history.csv"
             if not path.exists():
                 continue
             loss = _history(out / r["id"])[0]
             k = min(200, max(1, len(loss) // 20))
             smooth = np.array([np.median(loss[i:i + k]) for i in range(0, len(loss) - k + 1, k)])
-            ax.semilogy(np.arange(len(smooth)) * k + k, smooth, color=colours[r["mode"]], lw=1,
-                        label=f"{r['mode']} seed {r['seed']}")
+            ax.plot(np.arange(len(smooth)) * k + k, smooth, color=colours[r["mode"]],
+                    lw=widths[r["mode"]], ls=SEED_STYLES[r["seed"] % len(SEED_STYLES)],
+                    gid=r["id"])
+            blocks.add(k)
+            seeds.add(r["seed"])
+        log_axis(ax)
         ax.set_title(setup)
         ax.set_xlabel("update")
-        ax.set_ylabel("training loss (median of 200 updates)")
-        ax.legend(fontsize=6, ncol=2)
+        block = blocks.pop() if len(blocks) == 1 else None
+        ax.set_ylabel("training loss" + (" (each update)" if block == 1 else
+                                         f" (median of blocks of {block} updates)" if block else
+                                         " (medians of blocks of a twentieth of each run)"))
+        handles = [Line2D([], [], color=colours[m], lw=widths[m], label=m) for m in modes]
+        handles += [Line2D([], [], color="k", ls=SEED_STYLES[s % len(SEED_STYLES)],
+                           label=f"seed {s}") for s in sorted(seeds)]
+        ax.legend(handles=handles, fontsize=7, ncol=2, title="colour: mode, line style: seed",
+                  title_fontsize=7)
     save_figure(fig, out / "curves.png", dpi=120)
 
 
