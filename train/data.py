@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from adjointsim.errors import DamagedFileError, UserError
 from adjointsim.files import atomic_path
+from adjointsim.stepper import NonFiniteStateError
 
 from .problems import PROBLEMS, Problem, get_problem
 
@@ -67,14 +68,22 @@ def generate(
         count = cfg["train_per_param"] if split == "train" else cfg["test_per_param"]
         solver = problem.reference(param)
         u = problem.initial_states(rng, param, count, split).astype(np.float64)
-        for _ in range(problem.warmup_frames):
-            u = solver.rollout(u, problem.substeps)
-            bar.update()
-        traj = np.empty((frames, *problem.to_coarse(u).shape), dtype=np.float32)
-        for t in range(frames):
-            traj[t] = problem.to_coarse(u)
-            u = solver.rollout(u, problem.substeps)
-            bar.update()
+        try:
+            for _ in range(problem.warmup_frames):
+                u = solver.rollout(u, problem.substeps)
+                bar.update()
+            traj = np.empty((frames, *problem.to_coarse(u).shape), dtype=np.float32)
+            for t in range(frames):
+                traj[t] = problem.to_coarse(u)
+                u = solver.rollout(u, problem.substeps)
+                bar.update()
+        except NonFiniteStateError as e:
+            # A rare initial state the reference scheme cannot carry at this step size: the
+            # data of a seed are all or nothing, so say which seed and let the user pick one.
+            bar.close()
+            raise UserError(f"seed {seed}: the {problem.name} reference solver blew up on "
+                            f"{split} trajectory {j} (parameter {param}): {e}; generate the "
+                            "data with another --seed") from None
         out[split].append((np.swapaxes(traj, 0, 1), param, problem.condition(param)))
     bar.close()
     splits = {

@@ -194,3 +194,14 @@ def test_an_intact_file_loads_as_it_was_written(tiny):
                 np.testing.assert_array_equal(getattr(split, key), f[name][key][...])
     assert config["splits"] == {k: list(v) for k, v in get_problem("ks").splits.items()}
     assert (ds.problem.name, ds.size, ds.seed) == ("ks", "tiny", 0)
+
+
+def test_a_seed_whose_reference_blows_up_is_one_line(capsys, monkeypatch):
+    """Seed 1 of the tiny KS data draws an initial state the reference scheme cannot carry."""
+    from adjointsim.cli import main
+
+    monkeypatch.setenv("TQDM_DISABLE", "1")
+    assert main(["data", "ks", "--size", "tiny", "--seed", "1", "--out", "/nonexistent/x.h5"]) \
+        == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "another --seed" in err

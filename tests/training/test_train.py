@@ -526,3 +526,14 @@ def test_overwrite_never_discards_somebody_elses_files(tiny, tmp_path):
             train(_config(tiny, theirs), overwrite=overwrite, progress=False)
     assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
     assert (theirs / "notes.txt").exists()
+
+
+def test_the_study_table_shows_a_blown_up_model_as_nan():
+    """A model whose rollout blew up has null measures in its row; the table still reports."""
+    from adjointsim.train.studies.neural_steppers import table
+
+    row = {"setup": "correction", "mode": "NOG", "seed": 0, "rel_error": None,
+           "correlation_time": 1.0, "stable_fraction": 0.0,
+           "interpolation": {"rel_error": None}, "extrapolation": {"rel_error": 0.1}}
+    text = table([row, dict(row, seed=1, rel_error=0.1)])
+    assert "nan 1.00e-01" in text

@@ -10,6 +10,7 @@ from it), its results and rollout plots.
 from __future__ import annotations
 
 import csv
+import math
 import warnings
 from functools import partial
 from pathlib import Path
@@ -140,10 +141,10 @@ def table(rows: list[dict]) -> str:
     coarse = next((r for r in rows if r.get("coarse_rel_error") is not None), None)
     for (setup, mode), rs in cells.items():
         rs = sorted(rs, key=lambda r: r["seed"])
-        e = np.array([r["rel_error"] for r in rs])
-        split = [np.mean([r[s]["rel_error"] for r in rs]) for s in TEST_SPLITS]
-        ct = np.mean([r["correlation_time"] for r in rs])
-        st = np.mean([r["stable_fraction"] for r in rs])
+        e = np.array([_number(r["rel_error"]) for r in rs])
+        split = [np.mean([_number(r[s]["rel_error"]) for r in rs]) for s in TEST_SPLITS]
+        ct = np.mean([_number(r["correlation_time"]) for r in rs])
+        st = np.mean([_number(r["stable_fraction"]) for r in rs])
         lines.append(
             f"{setup:<11} {mode:<4} {len(rs):>2}  {np.mean(e):11.3e} ± {np.std(e):10.2e}  "
             f"{split[0]:13.3e}  {split[1]:13.3e}  {ct:10.1f}  {st:6.2f}  "
@@ -157,13 +158,18 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _number(x: float | None) -> float:
+    """A row's measure; a blown-up model's is null in the JSON rows, NaN in the table."""
+    return math.nan if x is None else x
+
+
 def write_summary(rows: list[dict], out: Path, horizon: int) -> None:
     write_text(out / "table.txt", table(rows) + "\n")
     plt = pyplot()
 
     cells: dict[str, list[float]] = {}
     for r in rows:
-        cells.setdefault(f"{r['setup']}\n{r['mode']}", []).append(r["rel_error"])
+        cells.setdefault(f"{r['setup']}\n{r['mode']}", []).append(_number(r["rel_error"]))
     fig, ax = plt.subplots(figsize=(1.3 * len(cells) + 2, 3.8))
     names = list(cells)
     means = [np.mean(cells[k]) for k in names]
