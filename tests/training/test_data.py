@@ -196,12 +196,23 @@ def test_an_intact_file_loads_as_it_was_written(tiny):
     assert (ds.problem.name, ds.size, ds.seed) == ("ks", "tiny", 0)
 
 
-def test_a_seed_whose_reference_blows_up_is_one_line(capsys, monkeypatch):
+def test_a_seed_whose_reference_blows_up_is_one_line(capsys):
     """Seed 1 of the tiny KS data draws an initial state the reference scheme cannot carry."""
     from adjointsim.cli import main
 
-    monkeypatch.setenv("TQDM_DISABLE", "1")
-    assert main(["data", "ks", "--size", "tiny", "--seed", "1", "--out", "/nonexistent/x.h5"]) \
-        == 2
+    assert main(["data", "ks", "--size", "tiny", "--seed", "1", "--out", "/nonexistent/x.h5",
+                 "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "another --seed" in err
+
+
+def test_data_never_replaces_a_file_silently(tmp_path, capsys):
+    from adjointsim.cli import main
+
+    target = tmp_path / "mine.h5"
+    target.write_text("not yours")
+    assert main(["data", "ks", "--size", "tiny", "--out", str(target), "--no-progress"]) == 2
+    assert "pass --overwrite" in capsys.readouterr().err
+    assert target.read_text() == "not yours"
+    assert main(["data", "ks", "--size", "tiny", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "is a directory" in capsys.readouterr().err
