@@ -32,8 +32,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "control": ("control", "train a controller through a simulator (cartpole, guidance, "
                 "quantum; R/M/S/N/C)"),
     "hig": ("hig", "train through a solver with half-inverse gradients, Gauss-Newton or Adam"),
-    "pinn": ("pinn", "physics-informed training with loss balancing (uniform, "
-             "inverse-Dirichlet, max/avg)"),
+    "pinn": ("pinn", "physics-informed training with loss balancing (inverse-Dirichlet, "
+             "GradNorm, ReLoBRaLo, PCGrad, ConFIG, ...)"),
     "study": ("study", "a grid of runs on Dask: every study, the stability sweep included"),
     "bench": ("bench", "benchmarks: work-precision sweeps (error against run time)"),
 }
@@ -77,7 +77,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         build_parser().print_help(sys.stderr)
         return 2
     try:
-        args = build_parser(command).parse_args(argv)
+        try:
+            args = build_parser(command).parse_args(argv)
+        except UserError as e:  # the root parser reports a command's unknown options
+            if command in COMMANDS:
+                raise UserError(str(e).replace("(see adjointsim --help)",
+                                               f"(see adjointsim {command} --help)")) from None
+            raise
         if getattr(args, "progress", True) and not os.environ.get("TQDM_DISABLE"):
             announce_compiles()  # silenced with the progress bars whose stall it explains
         status = args._command(args)
