@@ -260,11 +260,17 @@ def refuse_foreign(out: Path, config: dict) -> None:
     except (ValueError, UnicodeDecodeError):
         theirs = None
     ours = json.loads(json_text(config))
-    if theirs != ours:
-        what = (f"differs in {', '.join(differing(ours, theirs))}" if isinstance(theirs, dict)
-                else "is not a run's")
-        raise RunExists(f"{out} holds another run or other files (its config.json {what}); "
-                        "choose another --out")
+    if theirs == ours:
+        return
+    if isinstance(theirs, dict) and theirs.keys() == ours.keys():  # this command's run
+        state = "a finished run" if (out / "result.json").exists() else "a run"
+        raise RunExists(f"{out} holds {state} of another configuration (differs in "
+                        f"{', '.join(differing(ours, theirs))}); choose another --out, or "
+                        "start it again with --overwrite")
+    what = (f"differs in {', '.join(differing(ours, theirs))}" if isinstance(theirs, dict)
+            else "is not a run's")
+    raise RunExists(f"{out} holds another run or other files (its config.json {what}); "
+                    "choose another --out")
 
 
 @contextmanager

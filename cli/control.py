@@ -39,9 +39,9 @@ def run(args: argparse.Namespace) -> int:
     values = overrides(args, ControlConfig)
     if args.out is not None:
         values["out"] = str(args.out)
-    elif args.config is None:
-        values["out"] = str(Path("runs") / f"control-{args.task}-{values.get('mode', 'C')}")
     cfg = ControlConfig.load(args.config, **values)
+    if args.out is None and cfg.out == ControlConfig.out:  # neither flag nor file chose one
+        cfg.out = str(Path("runs") / f"control-{cfg.task}-{cfg.mode}")
     out = Path(cfg.out)
     if args.resume:
         require_checkpoint(out)

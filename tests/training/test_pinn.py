@@ -115,7 +115,7 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     monkeypatch.setattr(pinn.Poisson, "losses", real)
     with pytest.raises(RunExists, match="--resume"):
         train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
-    with pytest.raises(RunExists, match="another run .*differs in seed"):
+    with pytest.raises(RunExists, match="run of another configuration .*differs in seed"):
         train_run(_cfg(weighting="maxavg", seed=1), tmp_path / "b", resume=True, progress=False)
     again = train_run(_cfg(weighting="maxavg"), tmp_path / "b", resume=True, progress=False,
                       plot=False)
