@@ -23,3 +23,26 @@ def tiny(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("data") / "ks-tiny.h5"
     datamod.save(datamod.generate("ks", "tiny", seed=0, progress=False), path)
     return path
+
+
+@pytest.fixture
+def figures(monkeypatch) -> list:
+    """The figures the package saves while a test runs, laid out and drawn as they are saved
+    (every module that took ``save_figure`` from ``adjointsim.files`` is patched)."""
+    from adjointsim import files
+
+    plt = files.pyplot()
+    saved: list = []
+    real = files.save_figure
+
+    def capture(fig, path, dpi=110):
+        real(fig, path, dpi)  # lays out, writes and closes: the objects stay readable
+        fig.canvas.draw()
+        saved.append(fig)
+
+    for module in list(sys.modules.values()):
+        if getattr(module, "save_figure", None) is real:
+            monkeypatch.setattr(module, "save_figure", capture)
+    yield saved
+    for fig in saved:
+        plt.close(fig)

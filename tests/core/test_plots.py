@@ -9,25 +9,6 @@ import pytest
 from adjointsim import files, run, stability
 
 
-@pytest.fixture
-def figures(monkeypatch) -> list:
-    """The figures passed to ``save_figure``, laid out and drawn as they are saved."""
-    plt = files.pyplot()
-    saved: list = []
-    real = files.save_figure
-
-    def capture(fig, path, dpi=110):
-        real(fig, path, dpi)  # lays out, writes and closes: the objects stay readable
-        fig.canvas.draw()
-        saved.append(fig)
-
-    monkeypatch.setattr(files, "save_figure", capture)
-    monkeypatch.setattr(run, "save_figure", capture)
-    yield saved
-    for fig in saved:
-        plt.close(fig)
-
-
 def labels(axis, minor: bool = False) -> list[str]:
     """The tick labels shown inside the view."""
     lo, hi = sorted(axis.get_view_interval())

@@ -12,25 +12,6 @@ from adjointsim.train import evaluate
 from adjointsim.train.studies import neural_steppers
 
 
-@pytest.fixture
-def figures(monkeypatch) -> list:
-    """The figures passed to ``save_figure``, laid out and drawn as they are saved."""
-    plt = files.pyplot()
-    saved: list = []
-    real = files.save_figure
-
-    def capture(fig, path, dpi=110):
-        real(fig, path, dpi)
-        fig.canvas.draw()
-        saved.append(fig)
-
-    for module in (files, evaluate, neural_steppers):
-        monkeypatch.setattr(module, "save_figure", capture)
-    yield saved
-    for fig in saved:
-        plt.close(fig)
-
-
 def shown_labels(axis) -> list[str]:
     lo, hi = sorted(axis.get_view_interval())
     return [t.label1.get_text() for t in axis.get_major_ticks() + axis.get_minor_ticks()

@@ -124,22 +124,8 @@ def test_backward_equals_the_gradient_of_the_weighted_sum_and_refreshes_when_due
 def test_on_a_differentiable_physics_loss_state_and_control_cost():
     """The guidance task through the solver's adjoint: evader distance and control effort are
     two terms of very different spread; ID lifts the weaker one to the reference's spread."""
-    from adjointsim.train import bridge, control
-
-    task = control.get_task("guidance", 1.0)
-    torch.manual_seed(0)
-    net = task.net().double()
-    for m in net.modules():
-        if isinstance(m, torch.nn.Linear):
-            m.reset_parameters()
-    x = torch.from_numpy(task.initial_states(np.random.default_rng(0), 4))
-    state, effort = 0.0, 0.0
-    for _ in range(5):
-        c = task.control(net(x))
-        x = bridge.step(task.solver, x, c)
-        state = state + (x[:, :2, task.solver.drivers:] ** 2).sum(dim=1).mean()
-        effort = effort + 1e-3 * (c**2).mean()
-    params = list(net.parameters())
+    terms, params = _guidance_terms()
+    state, effort = terms["track"], terms["effort"]
     g_s = torch.cat([g.reshape(-1) for g in torch.autograd.grad(state, params,
                                                                  retain_graph=True)])
     g_c = torch.cat([g.reshape(-1) for g in torch.autograd.grad(effort, params,
