@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from .options import config_flags, overrides, run_options
+from .options import config_flags, overrides, run_options, write_result
 
 _HELPS = {
     "mode": "the gradient flow: R (regular BPTT), M, S, N, or C (combined)",
@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     with run_errors(out):
         result = train_controller(cfg, resume=args.resume, progress=args.progress,
                                   overwrite=args.overwrite)
+    write_result(args, result)
     loss = result["test_loss"]
     loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
     print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")

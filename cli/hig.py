@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import at_least, config_flags, overrides, run_options, threads_option
+from .options import at_least, config_flags, overrides, run_options, threads_option, write_result
 
 _HELPS = {
     "optimizer": "half-inverse gradients, Gauss-Newton or Adam, each with the problem's batch "
@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     with run_errors(out):
         result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
                            progress=args.progress)
+    write_result(args, result)
     loss = result["test_loss"]
     print(f"{cfg.problem}/{cfg.optimizer} seed {cfg.seed}: {result['updates']} updates in "
           f"{result['wall_s']:.1f} s, test loss "

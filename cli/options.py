@@ -59,8 +59,8 @@ def threads_option(p: argparse.ArgumentParser, default: int | None = 1) -> None:
 
 
 def run_options(p: argparse.ArgumentParser, out_default: str, config: bool = True) -> None:
-    """``--out``, ``--resume`` / ``--overwrite`` (one of them), ``--config`` and
-    ``--no-progress``: what every training and fitting command takes."""
+    """``--out``, ``--resume`` / ``--overwrite`` (one of them), ``--config``, ``--json`` and
+    ``--no-progress``: what every training command takes (see :func:`write_result`)."""
     out_option(p, out_default)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
@@ -70,6 +70,7 @@ def run_options(p: argparse.ArgumentParser, out_default: str, config: bool = Tru
     if config:
         p.add_argument("--config", type=Path, default=None, metavar="FILE.toml",
                        help="config keys from a TOML file; flags override them")
+    json_option(p, "also write the run's result here as JSON")
     progress_option(p)
 
 
@@ -118,3 +119,11 @@ def overrides(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     """The config keys set on the command line (None: not given)."""
     return {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
             if getattr(args, f.name, None) is not None}
+
+
+def write_result(args: argparse.Namespace, result: dict) -> None:
+    """``--json PATH``: the run's result, as its ``result.json`` holds it."""
+    if args.json is not None:
+        from adjointsim.files import write_json
+
+        write_json(args.json, result)

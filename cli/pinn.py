@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import config_flags, overrides, run_options, threads_option
+from .options import config_flags, overrides, run_options, threads_option, write_result
 
 _HELPS = {
     "k": "the Poisson wavenumber: ω = kπ",
@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     with run_errors(out):
         result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,
                                 overwrite=args.overwrite, threads=args.threads)
+    write_result(args, result)
     if result["diverged"]:
         print(f"{name} {cfg.weighting}: diverged after {pinn.MAX_SKIPS} non-finite losses in a "
               f"row; run in {out}")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from adjointsim.errors import UserError
 
-from .options import config_flags, overrides, run_options
+from .options import config_flags, overrides, run_options, write_result
 
 _HELPS = {
     "mode": "the unrolling schedule ONE, or a gradient flow (WIG, NOG; R, M, S, N, C)",
@@ -25,7 +25,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.run import read_history, require_checkpoint, run_errors
     from adjointsim.train.trainer import TrainConfig, build_model, describe, train
 
     values = overrides(args, TrainConfig)
@@ -46,5 +46,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
     with run_errors(out):
         train(cfg, resume=args.resume, progress=args.progress, overwrite=args.overwrite)
+    # history.csv is written when the run finishes (not after a --max-iterations stop)
+    done = out / "history.csv"
+    history = read_history(done) if done.exists() else []
+    write_result(args, {**cfg.as_dict(), "iterations": len(history),
+                        "skipped": sum(h["skipped"] for h in history),
+                        "final_loss": history[-1]["loss"] if history else None})
     print(f"run in {out}")
     return 0

@@ -207,3 +207,16 @@ def test_json_output_never_holds_nan_or_infinity():
     (row,) = json.loads(text)
     assert row["rel_error"] is None and row["split"]["x"] is None and row["ok"] == 1.5
     assert row["non_finite"] == {"rel_error": "inf", "split.x": "nan"}
+
+
+def test_every_training_command_takes_json_path(tiny, tmp_path, capsys):
+    """--json PATH means the same everywhere: the run's result, also written there."""
+    rows = tmp_path / "train.json"
+    assert _run(capsys, "train", "--data", tiny, "--out", tmp_path / "t", *TINY, "--json",
+                rows)[0] == 0
+    result = json.loads(rows.read_text())
+    assert result["iterations"] > 0 and result["setup"] == "prediction"
+    for command in ("control", "hig", "pinn", "fit"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert "--json PATH" in capsys.readouterr().out, command
