@@ -47,8 +47,9 @@ TINY_NET = {"width": 8, "depth": 2, "collocation": 64, "edge_points": 8, "log_ev
 SIZES: dict[str, dict] = {
     "tiny": {"poisson": {1: 6}, "others": {}, "schemes": ("uniform", "inverse-dirichlet"),
              "seeds": 1, "net": TINY_NET},
-    # k = 1, 3, 6 rather than 1..6: one cell takes about a minute on one shared core (20 ms
-    # an epoch), and every scheme at every k would not fit in 45 minutes
+    # k = 1, 3, 6 rather than 1..6: a cell took 40-58 s (median 43 s, ntk the slowest) on
+    # one core of a shared 2-core machine, 25 minutes for the 33 cells; every scheme at
+    # every k would take about 50
     "quick": {"poisson": {1: REDUCED, 3: REDUCED, 6: REDUCED}, "others": {},
               "schemes": RULES, "seeds": 1, "net": {}},
     "full": {"poisson": {**{k: REDUCED for k in range(1, 6)}, 6: EPOCHS["poisson"]},
