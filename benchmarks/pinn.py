@@ -23,23 +23,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from weighting import epoch_time  # noqa: E402  (the one timed epoch, beside this file)
 
-from adjointsim.train.pinn import PinnConfig, make_problem, make_weighting  # noqa: E402
-
-
-def epoch_time(route: str, epochs: int, weighting: str) -> float:
-    cfg = PinnConfig(k=4, weighting=weighting, route=route)
-    problem = make_problem(cfg)
-    model = problem.model()
-    params = list(model.parameters())
-    opt = torch.optim.Adam(params, lr=cfg.lr)
-    w = make_weighting(cfg, problem)
-    t0 = time.process_time()
-    for epoch in range(epochs):
-        opt.zero_grad(set_to_none=True)
-        w.backward(problem.losses(model, route), params, epoch)
-        opt.step()
-    return (time.process_time() - t0) / epochs
+from adjointsim.train.pinn import PinnConfig, make_problem  # noqa: E402
 
 
 def main() -> None:
@@ -51,10 +37,10 @@ def main() -> None:
     torch.set_num_threads(1)
     times = {"taylor": [], "autograd": []}
     for route in times:  # warm-up
-        epoch_time(route, 2, args.weighting)
+        epoch_time(args.weighting, route, 2, 0)
     for _ in range(args.rounds):
         for route in times:
-            times[route].append(epoch_time(route, args.epochs, args.weighting))
+            times[route].append(epoch_time(args.weighting, route, args.epochs, 0))
     t_f, t_a = median(times["taylor"]), median(times["autograd"])
     print(f"Poisson PINN epoch (2500 + 400 points, [2, 50x5, 1] tanh, {args.weighting}), "
           f"1 thread, CPU time, median of {args.rounds} rounds x {args.epochs} epochs")
@@ -90,7 +76,7 @@ def split(route: str, weighting: str,
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
-        epoch_time(route, 2, weighting)
+        epoch_time(weighting, route, 2, 0)
     calls: dict[tuple, int] = {}
     for e in prof.events():
         if e.name not in ("aten::mm", "aten::addmm"):
@@ -125,7 +111,7 @@ def split(route: str, weighting: str,
             res = model.laplacian(problem.x_col, route) - problem.f_col
             torch.autograd.grad((res**2).mean(), params)
         lap.append((time.process_time() - t0) / epochs)
-        whole.append(epoch_time(route, epochs, weighting))
+        whole.append(epoch_time(weighting, route, epochs, 0))
     return (floor, inside_floor, median(lap), median(whole) - median(lap),
             elementwise_floor(model, *problem.x_col.shape))
 

@@ -31,23 +31,18 @@ b·d_y physics rows; h: the layer's input), so J Jᵀ and Jᵀ w come from per-l
 (:class:`LayerFactors`), at Σ n_out instead of |θ| multiply-adds per Gram entry. Equal to the
 explicit route to 1e-15 relative.
 
-Cost (``python benchmarks/hig.py``, one thread, float64, medians; a recorded output is
-``docs/results/benchmarks/bench-hig-2026-11-25.txt``):
-one oscillators update (batch 128, 512 rows) 95 ms =
-network 2% + physics 22% + decomposition 68% (nearly all of it the eigendecomposition of the
-512 × 512 Gram matrix) + apply 1%. The direction of one update by layer factors against the
-explicit J's Gram matrix and QR + SVD: oscillators 80 ms against 135 and 307; quantum 100
-against 280 and 596; Poisson at batch 4 20 against 241 and 613, at batch 16 380 against 2176
-and 5846, at the paper's batch 64 25.7 s against 50.4 s, where the 4096 × 4096
-eigendecomposition is nearly all of it. J itself (``jacobian``, for the SVD route and for
-other networks) takes 29 ms on the oscillators, 300x faster than ``torch.func.jacrev``
-through the same RK4 in plain torch. The SVD of a wide J is taken as Jᵀ = QR followed by the
+Where the time goes: on the oscillators nearly all of an update is the decomposition (the
+eigendecomposition of the Gram matrix), a fifth the physics; the layer-factor route forms the
+direction several times faster than the explicit J's Gram matrix or QR + SVD, and J itself
+(``jacobian``, for the SVD route and for other networks) far faster than ``torch.func.jacrev``
+through the same RK4 in plain torch. ``python benchmarks/hig.py`` measures each part; the
+figures are on the results page. The SVD of a wide J is taken as Jᵀ = QR followed by the
 SVD of the small R.
 
 The decomposition (``decomposition=``): ``"svd"`` is the one above, exact to round-off.
 ``"gram"`` takes the eigendecomposition J Jᵀ = U Λ Uᵀ (σ² = λ) of the small Gram matrix and
-applies V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g: with layer factors 3.9–30× faster than QR + SVD
-(figures above), but λ carries an absolute
+applies V Σ^(−κ) Uᵀ g = Jᵀ U Σ^(−κ−1) Uᵀ g: faster than QR + SVD with layer factors
+(``python benchmarks/hig.py``), but λ carries an absolute
 error of about ε λ_max, so singular values near τ σ_max lose about ε/τ² of relative accuracy:
 against the SVD route the direction differs by 9.7e-5 (oscillators, τ = 1e-6), 1.6e-7
 (quantum, τ = 1e-5) and 1e-13 (Poisson, well conditioned), relative. ``"auto"`` (the default) takes

@@ -61,19 +61,23 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
             "seconds": result["seconds"]}
 
 
-def _err(row: dict) -> float:
+def rel_l2_of(row: dict) -> float:
+    """A row's error; a diverged run's (null) is infinite."""
     return math.inf if row.get("rel_l2") is None else row["rel_l2"]
 
 
-def _fmt(values: list[float]) -> str:
+def median_range(values: list[float], count: bool = True) -> str:
+    """Median [min, max] over seeds of the finite values, the number of seeds (``count``) and
+    how many diverged: a table cell of the PINN studies."""
     finite = [v for v in values if math.isfinite(v)]
     if not finite:
         return "diverged"
     text = f"{median(finite):.2e}"
     if len(finite) > 1:
         text += f" [{min(finite):.1e}, {max(finite):.1e}]"
-    return text + f" n={len(values)}" + (f" ({len(values) - len(finite)} div.)"
-                                         if len(finite) < len(values) else "")
+    if count:
+        text += f" n={len(values)}"
+    return text + (f" ({len(values) - len(finite)} div.)" if len(finite) < len(values) else "")
 
 
 def table(rows: list[dict]) -> str:
@@ -87,8 +91,8 @@ def table(rows: list[dict]) -> str:
     for k in ks:
         line = [str(k)]
         for w in ws:
-            errs = [_err(r) for r in rows if r["k"] == k and r["weighting"] == w]
-            line.append(f"{_fmt(errs)} ({REPORTED[w][k]:.1e})" if errs else "-")
+            errs = [rel_l2_of(r) for r in rows if r["k"] == k and r["weighting"] == w]
+            line.append(f"{median_range(errs)} ({REPORTED[w][k]:.1e})" if errs else "-")
         body.append(line)
     widths = [max(len(x[i]) for x in [head, *body]) for i in range(len(head))]
     lines = [f"Poisson PINN, relative L2 on the 100 x 100 grid: median [min, max] over n seeds "
@@ -100,7 +104,7 @@ def table(rows: list[dict]) -> str:
 
 
 def _verdict(rows: list[dict], k: int) -> str:
-    by = {(r["weighting"], r["seed"]): _err(r) for r in rows if r["k"] == k}
+    by = {(r["weighting"], r["seed"]): rel_l2_of(r) for r in rows if r["k"] == k}
     parts = []
     for other in ("uniform", "max-avg"):
         pairs = [(v, by[(other, s)]) for (w, s), v in by.items()
@@ -131,12 +135,12 @@ def plot(rows: list[dict], path: Path) -> None:
     fig, ax = _axes()
     ks = sorted({r["k"] for r in rows})
     for w, c in COLORS.items():
-        mine = [r for r in rows if r["weighting"] == w and math.isfinite(_err(r))]
+        mine = [r for r in rows if r["weighting"] == w and math.isfinite(rel_l2_of(r))]
         if not mine:
             continue
         ax.scatter([r["k"] for r in mine], [r["rel_l2"] for r in mine], color=c, s=12,
                    alpha=0.6)
-        med = [(k, median(_err(r) for r in mine if r["k"] == k)) for k in ks
+        med = [(k, median(rel_l2_of(r) for r in mine if r["k"] == k)) for k in ks
                if any(r["k"] == k for r in mine)]
         ax.plot(*zip(*med), color=c, label=w)
         ax.plot(ks, [REPORTED[w][k] for k in ks], color=c, ls="--", lw=0.8)
@@ -190,7 +194,7 @@ def ks_table(rows: list[dict]) -> str:
     and at the end, their ratio (> 1: forgotten), the coefficients' errors and the relative L2
     of u."""
     def cell(values: list[float]) -> str:
-        return _fmt([v if v is not None else math.inf for v in values]).split(" n=")[0]
+        return median_range([v if v is not None else math.inf for v in values], count=False)
 
     head = ["weighting", "n", "data after 1", "data at end", "end / after 1", "|α-1|", "|β-1|",
             "rel L2 of u"]
@@ -204,7 +208,7 @@ def ks_table(rows: list[dict]) -> str:
         body.append([w, str(len(mine)), cell(d1), cell(d3),
                      cell([b / a for a, b in zip(d1, d3)]),
                      cell([abs(r["alpha"] - 1) for r in mine]),
-                     cell([abs(r["beta"] - 1) for r in mine]), cell([_err(r) for r in mine])])
+                     cell([abs(r["beta"] - 1) for r in mine]), cell([rel_l2_of(r) for r in mine])])
     widths = [max(len(x[i]) for x in [head, *body]) for i in range(len(head))]
     epochs = sorted({r["epochs"] for r in rows})
     lines = [f"KS sequential inverse problem (data, + periodic, + residual; "

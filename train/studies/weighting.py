@@ -37,6 +37,7 @@ from adjointsim.runner import Study, register_study
 
 from ..pinn import EPOCHS, NEEDS_POISSON, PinnConfig, train_run
 from ..weighting import RULES
+from .pinn import median_range, rel_l2_of
 
 #: the authors' schedule (Poisson 30,001 epochs) cut to the first 3000, where the lr is 1e-3
 REDUCED = 3000
@@ -97,10 +98,6 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     return {**row, "wall_s": time.perf_counter() - start}
 
 
-def _err(row: dict) -> float:
-    return math.inf if row.get("rel_l2") is None else row["rel_l2"]
-
-
 def _column(row: dict) -> str:
     return f"k={row['k']}" if row["problem"] == "poisson" else row["problem"]
 
@@ -119,20 +116,10 @@ def _medians(rows: list[dict]) -> dict[tuple[str, str], float]:
     """The median error per (column, scheme) over seeds; inf where every seed diverged."""
     groups: dict[tuple[str, str], list[float]] = {}
     for r in rows:
-        groups.setdefault((_column(r), r["weighting"]), []).append(_err(r))
+        groups.setdefault((_column(r), r["weighting"]), []).append(rel_l2_of(r))
     return {key: median(v for v in errs if math.isfinite(v))
             if any(math.isfinite(v) for v in errs) else math.inf
             for key, errs in groups.items()}
-
-
-def _fmt(errs: list[float]) -> str:
-    finite = [v for v in errs if math.isfinite(v)]
-    if not finite:
-        return "diverged"
-    text = f"{median(finite):.2e}"
-    if len(errs) > 1:
-        text += f" [{min(finite):.1e}, {max(finite):.1e}]"
-    return text + (f" ({len(errs) - len(finite)} div.)" if len(finite) < len(errs) else "")
 
 
 def table(rows: list[dict]) -> str:
@@ -146,8 +133,8 @@ def table(rows: list[dict]) -> str:
     for w in schemes:
         cells_ = []
         for c in cols:
-            errs = [_err(r) for r in rows if _column(r) == c and r["weighting"] == w]
-            text = _fmt(errs) if errs else "-"
+            errs = [rel_l2_of(r) for r in rows if _column(r) == c and r["weighting"] == w]
+            text = median_range(errs, count=False) if errs else "-"
             cells_.append(f"**{text}**" if errs and med[(c, w)] == best[c] < math.inf
                           else text)
         lines.append(f"| {w} | " + " | ".join(cells_) + " |")
@@ -185,7 +172,7 @@ def plot(rows: list[dict], path: Path) -> None:
     ks = sorted({r["k"] for r in poisson})
     for w in _schemes(poisson):
         color, marker = STYLE[w]
-        mine = [r for r in poisson if r["weighting"] == w and math.isfinite(_err(r))]
+        mine = [r for r in poisson if r["weighting"] == w and math.isfinite(rel_l2_of(r))]
         ax.scatter([r["k"] for r in mine], [r["rel_l2"] for r in mine], color=color, s=10,
                    alpha=0.5, marker=marker)
         line = [(k, med[(f"k={k}", w)]) for k in ks
@@ -203,8 +190,8 @@ def plot(rows: list[dict], path: Path) -> None:
             color, marker = STYLE[w]
             # side by side within a problem's column, so that equal errors stay visible
             shift = 0.6 * (j / max(len(schemes) - 1, 1) - 0.5)
-            pts = [(i + shift, _err(r)) for i, c in enumerate(others) for r in rows
-                   if _column(r) == c and r["weighting"] == w and math.isfinite(_err(r))]
+            pts = [(i + shift, rel_l2_of(r)) for i, c in enumerate(others) for r in rows
+                   if _column(r) == c and r["weighting"] == w and math.isfinite(rel_l2_of(r))]
             if pts:
                 ax.scatter(*zip(*pts), color=color, marker=marker, s=16, label=w)
         ax.set(yscale="log", xticks=range(len(others)), xlim=(-0.5, len(others) - 0.5),
