@@ -25,12 +25,11 @@ one curve per scheme and grid.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -365,29 +364,18 @@ def plot(rows: list[dict], scene: Scene, path: Path) -> None:
     save_figure(fig, path, dpi=120)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``adjointsim bench work-precision SCENE [--out DIR] [--quick] ...``; returns 0."""
-    parser = argparse.ArgumentParser(
-        prog="adjointsim bench work-precision", description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scene", choices=sorted(SCENES),
-                        help="ks: Kassam–Trefethen KS; ns: 2D Kolmogorov flow")
-    parser.add_argument("--out", type=Path, default=Path("."), help="output directory")
-    parser.add_argument("--quick", action="store_true", help="a small sweep (under a minute)")
-    parser.add_argument("--repeats", type=int, default=None,
-                        help="timing samples per point (default 5, quick 3)")
-    parser.add_argument("--no-exponax", action="store_true", help="skip the exponax curve")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
-    scene = SCENES[args.scene]
-    with_exponax = not args.no_exponax and load_exponax() is not None
-    if not args.no_exponax and not with_exponax:
+def run(scene_name: str, out: Path, quick: bool = False, repeats: int | None = None,
+        exponax: bool = True, progress: bool = True) -> list[dict]:
+    """The sweep of one scene: rows, ``work_precision_<scene>.csv`` and ``.png`` in ``out``,
+    and the table printed; ``exponax=False`` leaves the peer out."""
+    scene = SCENES[scene_name]
+    with_exponax = exponax and load_exponax() is not None
+    if exponax and not with_exponax:
         print("exponax: skipped (not installed; pip install exponax)")
-    repeats = args.repeats or (3 if args.quick else 5)
-    rows = sweep(scene, args.quick, repeats, with_exponax, not args.no_progress)
-    args.out.mkdir(parents=True, exist_ok=True)
-    csv_path = args.out / f"work_precision_{scene.name}.csv"
-    png_path = args.out / f"work_precision_{scene.name}.png"
+    rows = sweep(scene, quick, repeats or (3 if quick else 5), with_exponax, progress)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = out / f"work_precision_{scene.name}.csv"
+    png_path = out / f"work_precision_{scene.name}.png"
     write_csv(rows, csv_path)
     plot(rows, scene, png_path)
     print(f"{'scheme':<16} {'N':>4} {'dt':>9} {'steps':>6} {'error':>9} {'time [ms]':>10}")
@@ -395,4 +383,4 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{r['scheme']:<16} {r['n']:>4} {r['dt']:>9.4g} {r['steps']:>6} "
               f"{r['error']:>9.2e} {1e3 * r['time_s']:>10.3f}")
     print(f"wrote {csv_path} and {png_path}")
-    return 0
+    return rows

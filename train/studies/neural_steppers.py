@@ -9,7 +9,6 @@ from it), its results and rollout plots.
 
 from __future__ import annotations
 
-import csv
 import math
 import warnings
 from functools import partial
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from adjointsim.files import log_axis, pyplot, save_figure, write_text
+from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
 
 from .. import data as datamod
@@ -101,11 +101,9 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
 
 def _history(run_dir: Path) -> tuple[np.ndarray, int]:
     """The training loss of every update that was applied, and the number skipped."""
-    with open(run_dir / "history.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    skipped = [r["skipped"] == "True" for r in rows]
-    loss = np.array([float(r["loss"]) for r, s in zip(rows, skipped) if not s])
-    return loss, int(sum(skipped))
+    rows = read_history(run_dir / "history.csv")
+    loss = np.array([float(r["loss"]) for r in rows if not r["skipped"]])
+    return loss, sum(r["skipped"] for r in rows)
 
 
 def _report(problem: str, rows: list[dict], out: Path) -> str:
