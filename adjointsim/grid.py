@@ -41,7 +41,7 @@ def nodes(n: int, length: float, bc: str, start: float = 0.0) -> np.ndarray:
     return start + offset + h * np.arange(n)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def laplacian(u, out, inv_hx2, inv_hy2, bc):
     """out = Δ_h u for u of shape (B, C, Nx, Ny); a 1D grid is Ny = 1 with inv_hy2 = 0.
 
@@ -71,7 +71,7 @@ def laplacian(u, out, inv_hx2, inv_hy2, bc):
                     o[i, j] = _edge_point(v, i, j, nx, ny, inv_hx2, inv_hy2, bc)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _edge_point(v, i, j, nx, ny, inv_hx2, inv_hy2, bc):
     left = v[i - 1, j] if i > 0 else ghost(v[0, j], v[nx - 1, j], bc)
     right = v[i + 1, j] if i < nx - 1 else ghost(v[nx - 1, j], v[0, j], bc)
@@ -83,7 +83,7 @@ def _edge_point(v, i, j, nx, ny, inv_hx2, inv_hy2, bc):
     return value
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def ghost(u_edge, u_wrap, bc):
     """Value beyond an edge: the periodic image, zero (Dirichlet) or the mirror (Neumann)."""
     if bc == PERIODIC:

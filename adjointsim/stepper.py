@@ -45,7 +45,7 @@ from typing import Any, ClassVar
 import numba
 import numpy as np
 
-from . import validate
+from . import parallel, validate
 
 FLOAT_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 #: smallest ``checkpoint`` budget: u_0 and the two-state buffer the forward kernel advances in
@@ -147,6 +147,9 @@ class Stepper:
     #: True when the kernels keep a tape (see the module docstring): a vjp without parameter
     #: cotangents then records one whenever it recomputes a segment whole with a state to spare
     _records_tape: ClassVar[bool] = False
+    #: a batch of at least this many rows runs in chunks of at least as many (see
+    #: :func:`adjointsim.parallel.chunks`)
+    _min_chunk_rows: ClassVar[int] = 1
 
     # ----------------------------------------------------------------- subclass hooks
     def _forward(self, states: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray) -> None:
@@ -546,14 +549,29 @@ class Stepper:
         cbar = np.zeros(controls.shape, dtype=dtype)
         pbar = np.zeros(len(self.param_names), dtype=np.float64)
         if n and u0.shape[0]:  # else nothing to reverse: no kernel call
-            if trajectory is not None:  # a closed loop's step lands here: no sweep to plan
-                self._adjoint(np.ascontiguousarray(trajectory[:n]), controls, params, cotangents,
-                              cmap[:n], ubar, cbar, pbar, wrt_params)
+            parts = parallel.chunks(u0.shape[0], n * _points(u0.shape[1:]), self._min_chunk_rows,
+                                    fixed=wrt_params)
+            if len(parts) == 1:
+                self._reverse(u0, n, controls, params, cotangents, cmap, ubar, cbar, pbar,
+                              wrt_params, checkpoint, trajectory)
             else:
-                budget = n + 2 if checkpoint is None else int(checkpoint)
-                _AdjointSweep(
-                    self, controls, params, cotangents, cmap, ubar, cbar, pbar, wrt_params
-                ).reverse(u0.astype(dtype, copy=False), n, budget)
+                # Each chunk of rows is reversed on its own, checkpoints and all: no trajectory
+                # is copied between the threads.
+                def run(rows: slice) -> np.ndarray:
+                    part_ubar, part_cbar = ubar[rows].copy(), _rows(cbar, rows)
+                    part_pbar = np.zeros_like(pbar)
+                    self._reverse(
+                        np.ascontiguousarray(u0[rows]), n, _rows(controls, rows), params,
+                        _rows(cotangents, rows), cmap, part_ubar, part_cbar, part_pbar,
+                        wrt_params, checkpoint, None if trajectory is None else trajectory[:, rows],
+                    )
+                    ubar[rows] = part_ubar
+                    if cbar.shape[0]:
+                        cbar[:, rows] = part_cbar
+                    return part_pbar
+
+                for part_pbar in parallel.map_chunks(run, parts):
+                    pbar += part_pbar
         # The parameter cotangents too: a linear scheme's state cotangent never reads the
         # states, so a NaN in a trajectory shows only there.
         if not _all_finite(ubar) or (wrt_params and not _all_finite(pbar)):
@@ -565,6 +583,31 @@ class Stepper:
         )
 
     # ----------------------------------------------------------------- shared machinery
+    def _reverse(
+        self,
+        u0: np.ndarray,
+        n: int,
+        controls: np.ndarray,
+        params: np.ndarray,
+        cotangents: np.ndarray,
+        cmap: np.ndarray,
+        ubar: np.ndarray,
+        cbar: np.ndarray,
+        pbar: np.ndarray,
+        wrt_params: bool,
+        checkpoint: int | None,
+        trajectory: np.ndarray | None,
+    ) -> None:
+        """Reverse the n steps into ``ubar``, ``cbar`` and ``pbar``, in place."""
+        if trajectory is not None:  # a closed loop's step lands here: no sweep to plan
+            self._adjoint(np.ascontiguousarray(trajectory[:n]), controls, params, cotangents,
+                          cmap[:n], ubar, cbar, pbar, wrt_params)
+        else:
+            budget = n + 2 if checkpoint is None else int(checkpoint)
+            _AdjointSweep(
+                self, controls, params, cotangents, cmap, ubar, cbar, pbar, wrt_params
+            ).reverse(u0.astype(ubar.dtype, copy=False), n, budget)
+
     def _run(
         self, u0: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray, keep_all: bool
     ) -> np.ndarray:
@@ -574,8 +617,26 @@ class Stepper:
         states = np.empty((slots, *u0.shape), dtype=np.result_type(u0, p))
         states[0] = u0
         if n and u0.shape[0]:  # zero steps or an empty batch: nothing for the kernels to do
-            self._forward(states, n, ctrl, p)
+            self._forward_rows(states, n, ctrl, p)
         return states
+
+    def _forward_rows(self, states: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray) -> None:
+        """``_forward`` over the chunks of batch rows :func:`parallel.chunks` gives, on the
+        solver threads."""
+        work = n * _points(states.shape[2:])
+        parts = parallel.chunks(states.shape[1], work, self._min_chunk_rows)
+        if len(parts) == 1:
+            self._forward(states, n, ctrl, p)
+            return
+
+        def run(rows: slice) -> None:
+            part = np.empty((states.shape[0], rows.stop - rows.start, *states.shape[2:]),
+                            dtype=states.dtype)
+            part[0] = states[0, rows]
+            self._forward(part, n, _rows(ctrl, rows), p)
+            states[:, rows] = part
+
+        parallel.map_chunks(run, parts)
 
     def _raise_nonfinite_sweep(
         self,
@@ -725,6 +786,17 @@ class _AdjointSweep:
             del u
 
 
+def _points(row_shape: tuple[int, ...]) -> int:
+    """Points in one batch row of shape (C, *grid)."""
+    return int(np.prod(row_shape))
+
+
+def _rows(a: np.ndarray, rows: slice) -> np.ndarray:
+    """Rows ``rows`` of the batch axis (axis 1) of a per-step array, contiguous; an array
+    with no steps (no controls, no control cotangents) as it is."""
+    return np.ascontiguousarray(a[:, rows]) if a.shape[0] else a
+
+
 def _binomial_split(m: int, snaps: int) -> int:
     """Where to store the next checkpoint when reversing m steps with ``snaps`` ≥ 2 stored
     states (the segment's start among them).
@@ -739,7 +811,7 @@ def _binomial_split(m: int, snaps: int) -> int:
     return min(comb(snaps + t - 1, snaps), m - comb(snaps + t - 2, snaps - 1))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _all_finite(a: np.ndarray) -> bool:
     # Stops at the first NaN/Inf and makes no temporary: several times faster than
     # np.all(np.isfinite(a)) on the small states of a training step.

@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def transpose(coef):
     """Coefficients of Aᵀ: the lower and upper diagonals (and the corners) swap."""
     out = coef.copy()
@@ -36,7 +36,7 @@ def transpose(coef):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def factor(coef, n, cyclic):
     """Factorisation F of shape (5, n), of ``coef``'s dtype, for :func:`solve`.
 
@@ -72,7 +72,7 @@ def factor(coef, n, cyclic):
     return f
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve(f, x):
     """Solve A x = d in place along axis 1 of ``x`` (L, n, M), for all L·M right-hand sides.
 
@@ -96,7 +96,7 @@ def solve(f, x):
 TILE = 16
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_rows(f, x):
     """Solve A x = d in place along the last axis of a C-ordered ``x`` (L, M, n).
 
@@ -120,7 +120,7 @@ def solve_rows(f, x):
                     x[lo, m0 + t, i] = buf[0, i, t]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _thomas(f, x):
     # Forward elimination y_i = d_i / w_i − (lower / w_i) y_{i−1}, then back substitution
     # x_i = y_i − (upper / w_i) x_{i+1}: one multiply-add on each dependency chain.

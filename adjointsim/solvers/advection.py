@@ -25,14 +25,14 @@ from .. import validate
 from ..stepper import Choice, Range, Stepper
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def advection_forward(states, n, ctrl, dt, w):
     s = states.shape[0]
     for k in range(n):
         stencil(states[k % s], states[(k + 1) % s], w, ctrl, k, dt)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def advection_adjoint(states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, w, live, dw):
     mirrored = np.ascontiguousarray(w[::-1, ::-1])
     g = np.zeros((3, 3), dtype=pbar.dtype)
@@ -53,7 +53,7 @@ def advection_adjoint(states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, w, 
         ubar[...] = cur
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def stencil(u, out, w, extra, idx, scale):
     """out[i, j] = Σ_{r,q} w[r, q] u[i + r − 1, j + q − 1] (+ scale·extra[idx] if idx ≥ 0).
 
@@ -89,7 +89,7 @@ def stencil(u, out, w, extra, idx, scale):
                         row[j] += scale * e[j]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def correlate(v, u, live, g):
     """g[r, q] += Σ_{i,j} v[i, j] u[i + r − 1, j + q − 1] for the source rows r with live[r]."""
     nb, nc, nx, ny = u.shape
@@ -111,7 +111,7 @@ def correlate(v, u, live, g):
                     g[r, 2] += row[0] * src[1] + row[ny - 1] * src[0]
 
 
-@njit(cache=True, fastmath={"reassoc", "contract"})
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _dot3(x, left, mid, right):
     # Reassociation lets the reductions vectorise; it only reorders the rounding.
     zero = 0.0 * x[0] * mid[0]

@@ -33,7 +33,7 @@ from ..spectral.fft2d import (
 from ..stepper import Choice, Range, Stepper
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def advdiff_forward(states, n, ctrl, dt, e):
     nslot, nbatch = states.shape[0], states.shape[1]
     v = spectrum_zeros(e.shape, states)
@@ -44,7 +44,7 @@ def advdiff_forward(states, n, ctrl, dt, e):
             physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def advdiff_adjoint(states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, e, kx, ky, k2, weights):
     nbatch, size = states.shape[1], states.shape[-1]
     lam = spectrum_zeros(e.shape, states)

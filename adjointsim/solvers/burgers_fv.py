@@ -34,7 +34,7 @@ from ..stepper import Choice, Range, Stepper
 from .advection import smooth_noise
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def burgers_forward(states, n, ctrl, p, dt, substeps, inv_hx, inv_hy, inv_hx2, inv_hy2):
     s = states.shape[0]
     lap = np.empty_like(states[0])
@@ -52,7 +52,7 @@ def burgers_forward(states, n, ctrl, p, dt, substeps, inv_hx, inv_hy, inv_hx2, i
             _add(out, ctrl[k], dt)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def burgers_adjoint(
     states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p,
     dt, substeps, inv_hx, inv_hy, inv_hx2, inv_hy2,
@@ -85,7 +85,7 @@ def burgers_adjoint(
         ubar[...] = cur
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rusanov_step(u, v, lap, scratch, nu, tau, inv_hx, inv_hy, inv_hx2, inv_hy2):
     """v = u − τ Σ_d (F_{+½} − F_{−½}) / h_d + τ ν Δ_h u; each face flux is evaluated once."""
     laplacian(u, lap, inv_hx2, inv_hy2, PERIODIC)
@@ -119,7 +119,7 @@ def rusanov_step(u, v, lap, scratch, nu, tau, inv_hx, inv_hy, inv_hx2, inv_hy2):
                         rest[j] -= cy * (east_flux[j] - west_flux[j])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rusanov_step_adjoint(u, vbar, ubar, lap, scratch, nu, tau, inv_hx, inv_hy, inv_hx2, inv_hy2):
     """ubar = (∂v/∂u)ᵀ vbar for the sub-step from u; leaves Δ_h vbar in ``lap``."""
     laplacian(vbar, lap, inv_hx2, inv_hy2, PERIODIC)
@@ -165,19 +165,19 @@ def rusanov_step_adjoint(u, vbar, ubar, lap, scratch, nu, tau, inv_hx, inv_hy, i
                         rest[j] += from_east[j] + from_west[j]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _mag(x):
     return x if x.real >= 0 else -x
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _rusanov(a, b):
     ma, mb = _mag(a), _mag(b)
     alpha = ma if ma.real >= mb.real else mb
     return 0.25 * (a * a + b * b) - 0.5 * alpha * (b - a)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _rusanov_grad(a, b):
     """(∂F/∂u_L, ∂F/∂u_R), with ∂α/∂u on the branch of the larger |u|."""
     ma, mb = _mag(a), _mag(b)
@@ -191,7 +191,7 @@ def _rusanov_grad(a, b):
     return da, db
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dot(x, y):
     nb, nc, nx, ny = x.shape
     acc = 0.0 * x[0, 0, 0, 0] * y[0, 0, 0, 0]
@@ -203,7 +203,7 @@ def _dot(x, y):
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _add(out, x, scale):
     nb, nc, nx, ny = out.shape
     for b in range(nb):

@@ -29,7 +29,7 @@ from ..registry import register
 from ..stepper import Range, Stepper
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _accelerations(q, w, force, p, alpha):
     """θ̈ into ``alpha``; returns ẍ. q, w: positions and velocities (1 + P,)."""
     g, m, mt, ll = p[0], p[1], p[2], p[3]
@@ -43,7 +43,7 @@ def _accelerations(q, w, force, p, alpha):
     return (force + m * ll * total) / mt
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cartpole_forward(states, n, ctrl, p, dt):
     s = states.shape[0]
     alpha = np.empty(states.shape[3], states.dtype)
@@ -60,7 +60,7 @@ def cartpole_forward(states, n, ctrl, p, dt):
                 dst[b, 0, i] = src[b, 0, i] + dt * w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _step_adjoint(q, w, force, p, dt, qbar, wbar, pbar, want_p, alpha):
     """Replace (qbar, wbar), the cotangents of the step's output, by those of its input;
     returns the force's cotangent and adds the parameters' to ``pbar``."""
@@ -123,7 +123,7 @@ def _step_adjoint(q, w, force, p, dt, qbar, wbar, pbar, want_p, alpha):
     return fbar
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cartpole_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt):
     alpha = np.empty(ubar.shape[2], ubar.dtype)
     for k in range(states.shape[0] - 1, -1, -1):

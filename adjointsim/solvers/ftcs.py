@@ -17,7 +17,7 @@ from ..registry import register
 from .diffusion import DiffusionScene
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ftcs_forward(states, n, ctrl, p, dt, inv_hx2, inv_hy2, bc, g):
     s = states.shape[0]
     lap = np.empty_like(states[0])
@@ -28,7 +28,7 @@ def ftcs_forward(states, n, ctrl, p, dt, inv_hx2, inv_hy2, bc, g):
         _update(u, lap, v, ctrl, k, p, dt, g)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ftcs_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, inv_hx2, inv_hy2, bc, g):
     lap = np.empty_like(ubar)
     for k in range(states.shape[0] - 1, -1, -1):
@@ -46,7 +46,7 @@ def ftcs_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, inv_h
             ubar += cot[cmap[k]]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _update(u, lap, out, ctrl, k, p, dt, g):
     """out = u + Δt (ν lap + a g + ctrl[k]); the forcing and control terms only when present."""
     nb, nc, nx, ny = u.shape

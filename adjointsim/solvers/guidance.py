@@ -35,7 +35,7 @@ _EPS = 0.1
 _SPACING = 0.5
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _pair(rx, ry, k, cohesive):
     """φ(ρ) and φ'(ρ)/ρ of the pair force φ(ρ) r."""
     rho = np.sqrt(rx * rx + ry * ry)
@@ -45,7 +45,7 @@ def _pair(rx, ry, k, cohesive):
     return k / (d * d), -2.0 * k / (d * d * d) / rho
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accelerations(u, c, nd, p, acc):
     """acc (2, D + E) from one state u (4, D + E) and controls c (D, 2) (or empty)."""
     a, gd, ge, kd, ke = p[0], p[1], p[2], p[3], p[4]
@@ -92,7 +92,7 @@ def _accelerations(u, c, nd, p, acc):
         acc[1, e] = ay
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def guidance_forward(states, n, ctrl, p, dt, nd):
     s = states.shape[0]
     acc = np.empty((2, states.shape[3]), states.dtype)
@@ -110,7 +110,7 @@ def guidance_forward(states, n, ctrl, p, dt, nd):
                     dst[b, 2 + x, i] = v + dt * acc[x, i]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _pair_adjoint(u, ubar, i, j, k, cohesive, fx, fy):
     """Transpose of the pair force φ(ρ) r, r = x_i − x_j, applied to (fx, fy); returns
     (r·f̄) φ / k, the cotangent of the strength k."""
@@ -128,7 +128,7 @@ def _pair_adjoint(u, ubar, i, j, k, cohesive, fx, fy):
     return rf * phi1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _step_adjoint(u, c, cb, nd, p, dt, ubar, vbar, pbar, want_p):
     """u (4, A): the step's input; ubar (4, A): on entry the output's cotangent, on exit the
     input's. cb (D, 2) receives the controls' cotangent (when not empty)."""
@@ -195,7 +195,7 @@ def _step_adjoint(u, c, cb, nd, p, dt, ubar, vbar, pbar, want_p):
         pbar[4] += pke
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def guidance_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, nd):
     vbar = np.empty((2, ubar.shape[2]), ubar.dtype)
     empty = np.empty((0, 2), ubar.dtype)

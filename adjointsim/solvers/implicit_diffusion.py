@@ -29,7 +29,7 @@ from ..tridiagonal import factor, solve, solve_rows, transpose
 from .diffusion import DiffusionScene
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def theta_forward(states, n, ctrl, p, dt, theta, inv_hx2, inv_hy2, bc, g):
     s = states.shape[0]
     sc, _, fx, fy = _setup(states[0], p, dt, theta, inv_hx2, inv_hy2, bc, False)
@@ -38,7 +38,7 @@ def theta_forward(states, n, ctrl, p, dt, theta, inv_hx2, inv_hy2, bc, g):
         _step(states[k % s], ustar, states[(k + 1) % s], sc, fx, fy, ctrl, k, p, g, bc)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def theta_adjoint(
     states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, theta, inv_hx2, inv_hy2, bc, g
 ):
@@ -73,7 +73,7 @@ def theta_adjoint(
         ubar[:] = cur
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _setup(like, p, dt, theta, inv_hx2, inv_hy2, bc, adjoint):
     """Multipliers and factorised implicit matrices of the x and y half steps.
 
@@ -99,7 +99,7 @@ def _setup(like, p, dt, theta, inv_hx2, inv_hy2, bc, adjoint):
     return sc, dnu, fx, fy
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _matrix(sc, axis, bc):
     """Coefficients of I − s δ², s = sc[axis] (see :mod:`adjointsim.tridiagonal`)."""
     s = sc[axis]
@@ -113,7 +113,7 @@ def _matrix(sc, axis, bc):
     return coef
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _step(u, ustar, v, sc, fx, fy, ctrl, k, p, g, bc):
     """u → v; in 2D the half-step state u* is left in ``ustar``."""
     if v.shape[3] > 1:
@@ -123,13 +123,13 @@ def _step(u, ustar, v, sc, fx, fy, ctrl, k, p, g, bc):
         _half_step(u, v, 0, sc, fx, ctrl, k, p, g, bc)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _explicit_axis(h, halves):
     # 1D: explicit and implicit along x; 2D half step h: implicit along h, explicit along 1 − h.
     return 1 - h if halves == 2 else 0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _half_step(src, dst, h, sc, f, ctrl, k, p, g, bc):
     """Half step h: dst = T⁻¹ (E src + w_h Δt (a g + c_k)), T implicit along axis h."""
     e = _explicit_axis(h, 2 if src.shape[3] > 1 else 1)
@@ -145,7 +145,7 @@ def _half_step(src, dst, h, sc, f, ctrl, k, p, g, bc):
     _solve_along(f, dst, h)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _half_step_adjoint(r, out, lap, src, dst, h, halves, sc, dnu, ft, cbar, k, p, pbar,
                        want_p, g, bc):
     """Reverse half step h: r ← T⁻ᵀ r, then Eᵀ r goes to ``out`` (returns True) or, when
@@ -172,7 +172,7 @@ def _half_step_adjoint(r, out, lap, src, dst, h, halves, sc, dnu, ft, cbar, k, p
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _explicit(src, out, a, s, axis, bc):
     """out = a src + s δ² src along ``axis`` (0: x, 1: y) of (B, C, Nx, Ny) arrays."""
     nb, nc, nx, ny = src.shape
@@ -187,7 +187,7 @@ def _explicit(src, out, a, s, axis, bc):
         _explicit_rows(src.reshape(nb * nc, nx, ny), out.reshape(nb * nc, nx, ny), a, s, bc)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _explicit_rows(src, out, a, s, bc):
     """Along the last axis of (L, M, n) arrays."""
     nl, nm, n = src.shape
@@ -200,7 +200,7 @@ def _explicit_rows(src, out, a, s, bc):
             o[n - 1] = a * u[n - 1] + s * (u[n - 2] - 2 * u[n - 1] + ghost(u[n - 1], u[0], bc))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _explicit_middle(src, out, a, s, bc):
     """Along the middle axis of (L, n, M) arrays, the M columns side by side."""
     nl, n, nm = src.shape
@@ -217,7 +217,7 @@ def _explicit_middle(src, out, a, s, bc):
             )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve_along(f, u, axis):
     nb, nc, nx, ny = u.shape
     if ny == 1:
@@ -228,14 +228,14 @@ def _solve_along(f, u, axis):
         solve_rows(f, u.reshape(nb * nc, nx, ny))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _copy_scaled(src, out, a):
     x, o = src.reshape(-1), out.reshape(-1)
     for i in range(o.size):
         o[i] = a * x[i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _add_scaled(out, w, x):
     """out += w x for C-ordered arrays of the same shape."""
     o, y = out.reshape(-1), x.reshape(-1)
@@ -243,13 +243,13 @@ def _add_scaled(out, w, x):
         o[i] += w * y[i]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _zero64(x):
     """Zero in float64, or complex128 for complex ``x``."""
     return np.zeros(1, dtype=x.dtype)[0] + 0.0
 
 
-@njit(cache=True, fastmath={"reassoc"})
+@njit(cache=True, nogil=True, fastmath={"reassoc"})
 def _dot(r, x):
     """Σ r x over C-ordered arrays of the same shape, in float64 (complex128); reassociation
     lets the sum vectorise instead of waiting on one accumulator."""

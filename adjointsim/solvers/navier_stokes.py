@@ -60,7 +60,7 @@ TAPE_BYTES = 1 << 30
 # place); ``pspec`` receives the forward transforms. kx, ky: derivative wavenumbers (Nyquist
 # zeroed) in the state's real dtype. With a tape (n, B, s, 3, size, size) the forward kernel
 # records every stage's (u, v, ω) for the adjoint.
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ns_forward(
     states, n, ctrl, dt, a, b, kx, ky, inv_k2, keep, ncols, reuse_omega, fmode, fval, tape
 ):
@@ -95,7 +95,7 @@ def ns_forward(
             physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ns_adjoint(
     states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, a, b, da, db, kx, ky, inv_k2,
     keep, ncols, reuse_omega, fmode, fval, fbar, pidx, k2, weights, tape,
@@ -173,13 +173,13 @@ def ns_adjoint(
                     pbar[idrag] -= g
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _i_times(k, z):
     """i k z for real k, without the two multiplications by zero of a complex product."""
     return complex(-k * z.imag, k * z.real)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _transform_back(spec, phys, ncols):
     """phys = irfft2(spec) for spec zero in the columns ≥ ncols; may destroy spec."""
     if ncols < spec.shape[-1]:
@@ -188,7 +188,7 @@ def _transform_back(spec, phys, ncols):
         irfft2(spec, phys)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _transform(phys, spec, ncols):
     """spec = rfft2(phys) in the columns < ncols."""
     if ncols < spec.shape[-1]:
@@ -197,7 +197,7 @@ def _transform(phys, spec, ncols):
         rfft2(phys, spec)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stage_fields(a, b, v, nh, i, spec, phys, own, kx, ky, inv_k2, keep, ncols):
     """phys = (u, v, ω) of the masked stage value X_i = A_i v + Σ_{j<i} B_ij N_j (ω if own)."""
     size = v.shape[0]
@@ -218,7 +218,7 @@ def _stage_fields(a, b, v, nh, i, spec, phys, own, kx, ky, inv_k2, keep, ncols):
     _transform_back(spec[:nf], phys[:nf], ncols)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _nonlinear(phys, omega, prod, pspec, out, kx, ky, keep, ncols, fmode, fval):
     """out = −m ⊙ (i k_x ℱ(u ω) + i k_y ℱ(v ω)) + a F̂ on the kept region; (u, v) = phys[:2]."""
     size = omega.shape[0]
@@ -236,7 +236,7 @@ def _nonlinear(phys, omega, prod, pspec, out, kx, ky, keep, ncols, fmode, fval):
         out[0, fmode] += fval
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _nonlinear_adjoint(nbar, fields, spec, pspec, prod, kx, ky, inv_k2, keep, ncols):
     """pspec[0] = N'(X)* nbar on the kept region, for the stage whose (u, v, ω) are ``fields``.
 
@@ -269,7 +269,7 @@ def _nonlinear_adjoint(nbar, fields, spec, pspec, prod, kx, ky, inv_k2, keep, nc
                 )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _add_product(c, x, out, keep, ncols):
     """out += c x on the kept region."""
     for p in range(out.shape[0]):
@@ -278,7 +278,7 @@ def _add_product(c, x, out, keep, ncols):
                 out[p, q] += c[p, q] * x[p, q]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accumulate_dl(dldl, xbar, da, db, v, nh, i, keep_a, ncols_a, keep, ncols):
     """dldl += Re(conj(X̄_i) (dA_i/dL v + Σ_j dB_ij/dL N_j)), the A-term over keep_a × ncols_a."""
     size = dldl.shape[0]

@@ -32,7 +32,7 @@ from ..stepper import Range, Stepper
 RK4_IMAGINARY_LIMIT = 2.0 * np.sqrt(2.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accel(x, u, p, out):
     """out_i = −k x_i + Σ_j [ℓ d + c d³] (d = x_j − x_i) + g u δ_{i,N−1}."""
     n = x.shape[0]
@@ -48,7 +48,7 @@ def _accel(x, u, p, out):
     out[n - 1] += p[3] * u
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stages(y, u, p, h, zs, ks):
     """Stage inputs Z_s (zs[s]) and slopes K_s (ks[s]) of one RK4 step from y (2, N)."""
     for s in range(4):
@@ -61,7 +61,7 @@ def _stages(y, u, p, h, zs, ks):
         _accel(zs[s, 0], u, p, ks[s, 1])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def oscillators_forward(states, n, ctrl, p, h):
     s_ring = states.shape[0]
     nb, _, nx = states.shape[1:]
@@ -80,7 +80,7 @@ def oscillators_forward(states, n, ctrl, p, h):
                     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def oscillators_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, h):
     m = states.shape[0]
     nb, _, nx = ubar.shape

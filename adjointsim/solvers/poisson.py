@@ -60,7 +60,7 @@ def _periodic_solve_impl(f, out, symbol):
     return complex_step
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _filter(f, out, symbol):
     nb, nc, nx, ny = f.shape
     spec = scipy.fft.rfft2(f)
@@ -72,7 +72,7 @@ def _filter(f, out, symbol):
     out[:] = scipy.fft.irfft2(spec, s=(nx, ny))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _factor(kappa, bc, lam, inv_h2, like):
     """Factors (fa, fb) of −Δ_h + κ, once per call: Dirichlet, the Thomas 1/pivot and c' of the
     x-system of each sine mode j (column j); periodic, the inverse symbol (mean mode 0) and none.
@@ -96,7 +96,7 @@ def _factor(kappa, bc, lam, inv_h2, like):
     return symbol, np.empty((0, 0), like.dtype)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve(f, out, fa, fb, bc, inv_h2):
     """out = (−Δ_h + κ)⁻¹ f for f of shape (B, C, Nx, Ny); ``out`` may be ``f``."""
     nb, nc, nx, ny = f.shape
@@ -117,7 +117,7 @@ def _solve(f, out, fa, fb, bc, inv_h2):
         _periodic_solve(f, out, fa)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def poisson_forward(states, n, p, bc, lam, inv_h2):
     fa, fb = _factor(p[0], bc, lam, inv_h2, states)
     s = states.shape[0]
@@ -125,7 +125,7 @@ def poisson_forward(states, n, p, bc, lam, inv_h2):
         _solve(states[k % s], states[(k + 1) % s], fa, fb, bc, inv_h2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def poisson_adjoint(states, p, cot, cmap, ubar, pbar, want_p, bc, lam, inv_h2):
     fa, fb = _factor(p[0], bc, lam, inv_h2, ubar)
     m = states.shape[0]

@@ -34,7 +34,7 @@ from ..registry import register
 from ..stepper import Choice, Range, Stepper
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _diagonal(d, ctrl, k, b, p, half_dt, kinetic, x, v):
     """d = Δt/2 · diag(H_k) for batch element b; potential and control only when present."""
     for j in range(d.shape[0]):
@@ -49,7 +49,7 @@ def _diagonal(d, ctrl, k, b, p, half_dt, kinetic, x, v):
         d[j] *= half_dt
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cn_step(psi, out, d, e, sign, cr, ci):
     """out = (I + iσM)⁻¹ (I − iσM) psi, M = tridiag(e, d, e) real, σ = ±1; psi, out (2, N).
 
@@ -95,7 +95,7 @@ def _cn_step(psi, out, d, e, sign, cr, ci):
         out[1, j] -= cr[j] * x_im + ci[j] * x_re
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cn_forward(states, n, ctrl, p, half_dt, kinetic, x, v):
     s = states.shape[0]
     d = np.empty(states.shape[3], states.dtype)
@@ -108,7 +108,7 @@ def cn_forward(states, n, ctrl, p, half_dt, kinetic, x, v):
             _cn_step(states[k % s, b], states[(k + 1) % s, b], d, e, 1.0, cr, ci)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cn_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, half_dt, kinetic, x, v):
     m = states.shape[0]
     d = np.empty(ubar.shape[2], ubar.dtype)

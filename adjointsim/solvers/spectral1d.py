@@ -70,7 +70,7 @@ _LINEAR_TABLEAU = ((OUT, (("E", 1, V),)),)
 # A tableau term q adds coef[q] ⊙ st[src[q]] to its stage, times i where rot[q]; a stage s also
 # adds the constant dconst[s] (the forcing's share) when dconst is not empty. Rows NV..NC hold
 # Y = rfft(z²): the multiplier −½ i k (and the dealiasing mask) is folded into the coefficients.
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def etdrk_forward(states, n, ctrl, dt, substeps, tgt, start, src, coef, rot, dconst, fplan,
                   nonlinear, tape):
     """Frames k < n: states[(k + 1) % S] from states[k % S]. A substep's physical stage values
@@ -114,7 +114,7 @@ def etdrk_forward(states, n, ctrl, dt, substeps, tgt, start, src, coef, rot, dco
                 out += dt * ctrl[k, :, 0, :]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def etdrk_adjoint(states, ctrl, cot, cmap, ubar, cbar, dt, substeps, tgt, start, src, coef, rot,
                   dconst, fplan, nonlinear, tape, want_p, chat, fsum):
     nb, npts = states.shape[1], states.shape[3]
@@ -188,7 +188,7 @@ def etdrk_adjoint(states, ctrl, cot, cmap, ubar, cbar, dt, substeps, tgt, start,
             ubar += cot[cmap[k]]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _substep(tgt, start, src, coef, rot, dconst, st, zv, ph, out_v, out_z, need_z, stages_only,
              empty, t, w, nb, fplan, nonlinear):
     """One ETDRK step from st[V] and its physical values zv; every stage value and its Y land
@@ -212,7 +212,7 @@ def _substep(tgt, start, src, coef, rot, dconst, st, zv, ph, out_v, out_z, need_
         fft1d.irfft_packed(out_v, empty, out_z, w, nb, fplan)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _combine(y, coef, rot, dconst, s, q0, q1, src, st, nb):
     """y = dconst[s] + Σ_{q0 ≤ q < q1} (i if rot[q]) coef[q] ⊙ st[src[q]]."""
     fresh = dconst.shape[0] == 0
@@ -234,7 +234,7 @@ def _combine(y, coef, rot, dconst, s, q0, q1, src, st, nb):
             _axpy(y, lo, st, src[q], lo, coef, q, k, nb, 0, rot[q], fresh and q == q0)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _axpy(y, ylo, x, xrow, xlo, c, crow, ck, n, cstep, rot, first):
     """y[ylo + i] (+)= (i if rot) c[crow, ck + cstep·i] x[xrow, xlo + i] for i < n, assigning
     if ``first``. Rows are indexed in place: views cost a reference count each."""
@@ -255,7 +255,7 @@ def _axpy(y, ylo, x, xrow, xlo, c, crow, ck, n, cstep, rot, first):
             y[ylo + i] += c[crow, ck + cstep * i] * x[xrow, xlo + i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _substep_adjoint(tgt, start, src, coef, rot, dconst, st, ph, sb, ob, want_p, chat, fsum,
                      nonlinear, empty, zt, t, w, nb, fplan):
     """Reverse the stages of one step: ob is the cotangent of its output; sb receives those of
@@ -302,7 +302,7 @@ def _substep_adjoint(tgt, start, src, coef, rot, dconst, st, ph, sb, ob, want_p,
                     chat[q, k] += acc
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _axpy_adjoint(xb, xrow, lo, ybar, c, crow, ck, n, cstep, rot, first):
     """xb[xrow, lo + i] (+)= conj((i if rot) c[crow, ck + cstep·i]) ybar[lo + i], i < n:
     the transpose of :func:`_axpy` (assigning if ``first``)."""
@@ -323,7 +323,7 @@ def _axpy_adjoint(xb, xrow, lo, ybar, c, crow, ck, n, cstep, rot, first):
             xb[xrow, lo + i] += c[crow, ck + cstep * i].conjugate() * ybar[lo + i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _square_adjoint(ybar_sq, z, ybar, acc, empty, zt, t, w, nb, fplan):
     """ybar (+)= rfft(2 z ⊙ irfft(ybar_sq)): through Y = rfft(z²) and z = irfft(y)."""
     fft1d.irfft_packed(ybar_sq, empty, zt, w, nb, fplan)
@@ -344,6 +344,8 @@ class ETDRKScene1D(Stepper):
     linear_params: tuple[str, ...]
     complex_step = False  # real FFTs cannot run complex arrays
     _records_tape = True
+    # The real FFTs change algorithm at this batch size: chunks stay on the batch's side of it.
+    _min_chunk_rows = fft1d.LIBRARY_BATCH
     #: amplitude of :meth:`random_state`
     amplitude: float = 1.0
     #: smallest (even) n: below 4 only the mean and the Nyquist mode are left

@@ -122,7 +122,7 @@ def hermitian_weights(n: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------- complex FFT core
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cfft(x, y, nb, factors, tw, consts, forward):
     """Unnormalised complex FFT along the leading axis of the flat (M, nb) array ``x`` (sign −
     if ``forward``), using ``y`` as scratch. Returns the array that holds the result."""
@@ -144,13 +144,13 @@ def cfft(x, y, nb, factors, tw, consts, forward):
     return x
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _rot(d, forward):
     # d times −i (forward) or +i (inverse), exactly
     return complex(d.imag, -d.real) if forward else complex(-d.imag, d.real)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _radix4(x, y, s, sub, tw, off, forward):
     for j in range(sub):
         w1, w2, w3 = tw[off + 4 * j + 1], tw[off + 4 * j + 2], tw[off + 4 * j + 3]
@@ -166,7 +166,7 @@ def _radix4(x, y, s, sub, tw, off, forward):
             y[o + 3 * s + t] = (b1 - b3) * w3
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _radix2(x, y, s, sub, tw, off):
     for j in range(sub):
         w1 = tw[off + 2 * j + 1]
@@ -177,7 +177,7 @@ def _radix2(x, y, s, sub, tw, off):
             y[o + s + t] = (a0 - a1) * w1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _radix3(x, y, s, sub, tw, off, c, sn):
     # c = cos(2π/3) = −1/2, sn = ∓ sin(2π/3) (forward: −)
     for j in range(sub):
@@ -193,7 +193,7 @@ def _radix3(x, y, s, sub, tw, off, c, sn):
             y[o + 2 * s + t] = (r - iq) * w2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _radix_generic(x, y, s, sub, p, tw, off, forward):
     # Any other prime p, O(p²) per output; the p-th roots sit in the twiddles of index j = 1.
     root = np.exp((-2j if forward else 2j) * np.pi * np.arange(p) / p).astype(x.dtype)
@@ -209,7 +209,7 @@ def _radix_generic(x, y, s, sub, p, tw, off, forward):
 
 
 # ----------------------------------------------------------------- packed real FFTs
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def library(nb):
     """True when batches of ``nb`` signals go through DUCC0's real transforms: then a packed
     array holds the real signals (nb, N) row by row, viewed as reals, instead of the
@@ -217,14 +217,14 @@ def library(nb):
     return nb >= LIBRARY_BATCH
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def at(k, b, nk, nb):
     """Position of mode k of signal b in a half spectrum of nk modes: batch-major (b·nk + k)
     for one signal or the library path, else mode-major (k·nb + b)."""
     return b * nk + k if nb == 1 or nb >= LIBRARY_BATCH else k * nb + b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pack(u, z, consts):
     """z ← u packed, for u of shape (B, N) (any strides)."""
     nb, n = u.shape
@@ -238,7 +238,7 @@ def pack(u, z, consts):
                 z[j * nb + b] = complex(u[b, 2 * j], u[b, 2 * j + 1])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def unpack(z, u, consts):
     """u ← the real signals packed in z, u of shape (B, N)."""
     nb, n = u.shape
@@ -254,7 +254,7 @@ def unpack(z, u, consts):
                 u[b, 2 * j + 1] = v.imag
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rfft_packed(src, other, mode, out, mult, add, acc, t, w, nb, fplan):
     """out (+)= mult ⊙ rfft(s) + add (accumulated if ``acc``), with s = src (mode 0), src²
     (mode 1) or 2 src ⊙ other (mode 2), all packed; ``mult``/``add`` of length M + 1, or empty
@@ -328,7 +328,7 @@ def rfft_packed(src, other, mode, out, mult, add, acc, t, w, nb, fplan):
                     out[dst + b] = x2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def irfft_packed(x, mult, out, w, nb, fplan):
     """out (packed) = irfft(mult ⊙ x), x a half spectrum (M + 1, nb), ``mult`` of length
     M + 1 or empty for none. ``w`` is scratch of the spectral size (M + 1)·nb."""
@@ -373,7 +373,7 @@ def irfft_packed(x, mult, out, w, nb, fplan):
 
 
 # ----------------------------------------------------------------- array-level functions
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rfft_rows(u, out, fplan):
     nb, n = u.shape
     z = np.empty(nb * (n // 2), dtype=out.dtype)
@@ -387,7 +387,7 @@ def _rfft_rows(u, out, fplan):
             out[b, k] = flat[at(k, b, out.shape[1], nb)]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _irfft_rows(x, out, fplan):
     nb, n = out.shape
     flat = np.empty(x.size, dtype=x.dtype)

@@ -137,25 +137,25 @@ def random_smooth_field(
 
 
 # ------------------------------------------------------------------ transforms (numba kernels)
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _last_two(a):
     return np.array([a.ndim - 2, a.ndim - 1])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rfft2(x, out):
     """out = rfft2(x) over the last two axes; x (..., n, n) real, out (..., n, n//2+1) complex."""
     lowlevel.r2c(x, out, _last_two(x), True, 1.0, 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def irfft2(xh, out):
     """out = irfft2(xh) (with the 1/n² factor); out (..., n, n) real sets the length. Keeps xh."""
     n = out.shape[-1]
     lowlevel.c2r(xh, out, _last_two(xh), False, 1.0 / (n * n), 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rfft2_lowpass(x, out, cutoff):
     """rfft2 for the columns k_y ≤ ``cutoff`` only; used when a 2/3 mask follows the transform.
 
@@ -166,7 +166,7 @@ def rfft2_lowpass(x, out, cutoff):
     lowlevel.c2c(out[..., : cutoff + 1], out[..., : cutoff + 1], ax - 1, True, 1.0, 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def irfft2_lowpass(xh, out, cutoff):
     """irfft2 of a spectrum whose columns k_y > ``cutoff`` are zero, skipping their transforms.
 
@@ -178,14 +178,14 @@ def irfft2_lowpass(xh, out, cutoff):
     lowlevel.c2r(xh, out, ax, False, 1.0 / (n * n), 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def spectrum_zeros(shape, like):
     """Zeroed complex array of ``shape`` in the precision of the real array ``like``."""
     z = np.zeros(1, dtype=like.dtype) * np.complex64(1.0)
     return np.zeros(shape, dtype=z.dtype)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rfft2_adjoint(xh_bar, out):
     """out = rfft2ᵀ(xh_bar) = n² irfft2(xh_bar / c): the cotangent of x given that of rfft2(x)."""
     n = out.shape[-1]
@@ -194,7 +194,7 @@ def rfft2_adjoint(xh_bar, out):
     lowlevel.c2r(scaled, out, _last_two(scaled), False, 1.0, 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def irfft2_adjoint(x_bar, out):
     """out = irfft2ᵀ(x_bar) = (c / n²) rfft2(x_bar): the cotangent of xh given irfft2(xh)'s."""
     n = x_bar.shape[-1]
@@ -252,12 +252,12 @@ def resample_adjoint(y_bar: np.ndarray, n: int) -> np.ndarray:
     return resample(y_bar, n) * np.asarray((m * m) / (n * n), dtype=y_bar.dtype)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _irfft2_scaled(xh, out, fct):
     lowlevel.c2r(xh, out, _last_two(xh), False, fct, 1)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def physical_with_control(v, out, ctrl, k, b, dt):
     """out = irfft2(v) + Δt ctrl[k, b, 0], and v = rfft2(out) again when a control was added:
     the end of a controlled spectral step, shared by the 2D spectral steppers."""
