@@ -386,48 +386,46 @@ class Stepper:
             return np.zeros((0, u0.shape[0], *(shape or ())), dtype=u0.dtype)
         if shape is None:
             raise ValueError(f"{self.name} has no control hook; pass controls=None")
-        c = np.asarray(controls)
-        expected = (n, u0.shape[0], *shape)
-        if c.shape != expected:
-            raise ValueError(
-                f"{self.name}: controls have shape {c.shape}; expected {expected} "
-                "= (steps, batch, *control_shape)"
-            )
-        if c.dtype != u0.dtype:
-            raise TypeError(
-                f"{self.name}: controls have dtype {c.dtype} but the state is {u0.dtype}; "
-                "cast them to the state's dtype"
-            )
-        if not _all_finite(c):
-            raise NonFiniteInputError(
-                f"{self.name}: controls hold a non-finite value at {_first_bad(c, n - 1)}"
-            )
-        return np.ascontiguousarray(c)
+        return self._check_per_step(
+            controls, ("controls have", "controls hold"), (n, u0.shape[0], *shape), u0.dtype, n - 1,
+            " = (steps, batch, *control_shape)", "cast them to the state's dtype", "",
+        )
 
     def check_trajectory(self, trajectory: np.ndarray, n: int, u0: np.ndarray) -> np.ndarray:
         """The stored states u_0 .. u_n of an ``n``-step rollout from the checked state ``u0``
         (what ``rollout(..., keep="all")`` returns), checked: shape (n + 1, B, C, *grid), the
         state's dtype, finite."""
-        t = np.asarray(trajectory)
-        expected = (n + 1, *u0.shape)
-        if t.shape != expected:
+        return self._check_per_step(
+            trajectory, ("trajectory has", "trajectory holds"), (n + 1, *u0.shape), u0.dtype, n,
+            f', the {n + 1} states u_0 .. u_{n} that rollout(..., keep="all") returns for the '
+            "same inputs",
+            'pass the rollout(..., keep="all") of this state',
+            '; no rollout returns one: pass rollout(..., keep="all") of the same inputs, or no '
+            "trajectory to have the states recomputed",
+        )
+
+    def _check_per_step(
+        self, a: Any, what: tuple[str, str], expected: tuple[int, ...], dtype: np.dtype,
+        last: int, meaning: str, dtype_fix: str, finite_fix: str,
+    ) -> np.ndarray:
+        """``a`` (one array per step) as a C-contiguous array of shape ``expected`` and dtype
+        ``dtype``, finite; errors name it as ``what`` ("x has", "x holds") and end with the
+        fixes given."""
+        has, holds = what
+        a = np.asarray(a)
+        if a.shape != expected:
             raise ValueError(
-                f"{self.name}: trajectory has shape {t.shape}; expected {expected}, the "
-                f"{n + 1} states u_0 .. u_{n} that rollout(..., keep=\"all\") returns for "
-                "the same inputs"
+                f"{self.name}: {has} shape {a.shape}; expected {expected}{meaning}"
             )
-        if t.dtype != u0.dtype:
+        if a.dtype != dtype:
             raise TypeError(
-                f"{self.name}: trajectory has dtype {t.dtype} but the state is {u0.dtype}; "
-                'pass the rollout(..., keep="all") of this state'
+                f"{self.name}: {has} dtype {a.dtype} but the state is {dtype}; {dtype_fix}"
             )
-        if not _all_finite(t):
+        if not _all_finite(a):
             raise NonFiniteInputError(
-                f"{self.name}: trajectory holds a non-finite value at {_first_bad(t, n)}; "
-                'no rollout returns one: pass rollout(..., keep="all") of the same inputs, or '
-                "no trajectory to have the states recomputed"
+                f"{self.name}: {holds} a non-finite value at {_first_bad(a, last)}{finite_fix}"
             )
-        return t
+        return np.ascontiguousarray(a)
 
     def check_cotangents(
         self, cotangents: np.ndarray | Mapping[int, np.ndarray], n: int, u0: np.ndarray
