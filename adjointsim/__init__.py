@@ -3,6 +3,7 @@
 No torch import here: the torch layer lives in the ``train`` package.
 """
 
+from .parallel import set_threads, threads, using_threads
 from .registry import all_classes, get, names, register
 from .stepper import (
     Choice,
@@ -24,5 +25,8 @@ __all__ = [
     "get",
     "names",
     "register",
+    "set_threads",
+    "threads",
+    "using_threads",
 ]
 __version__ = "0.1.0"

@@ -7,9 +7,17 @@ over rows splits by the call's size alone and adds the chunks' sums in chunk ord
 bitwise the same for every thread count.
 
 The count comes from, in order: :func:`set_threads` (or the ``using_threads`` context), the
-environment variable ``ADJOINTSIM_THREADS``, and the cores this process may run on. A Dask
-worker of the study runner runs one thread; a training command gives the solver the threads
-it gives torch (``--threads``): the two take turns, each uses them all in its turn.
+environment variable ``ADJOINTSIM_THREADS``, and the cores this process may run on. Who sets
+it, so that threads never outnumber cores:
+
+- a direct library call uses every core;
+- a command takes ``--threads N``: every core by default for the commands that only run
+  solvers (``gradcheck``, ``bench``, ``fit``, ``data``); for the commands that run torch it
+  is the config key ``threads`` (default 1, so that a run's numbers do not depend on the
+  machine), which sets both torch's intra-op threads and the solver threads: the two take
+  turns, each uses them all in its turn;
+- a Dask worker of the study runner runs one solver thread and one torch thread (``--jobs``
+  workers use ``--jobs`` cores).
 """
 
 from __future__ import annotations
@@ -95,7 +103,9 @@ def chunks(batch: int, work_per_row: int, min_rows: int = 1, fixed: bool = False
     size alone, into a power of two of at most ``FIXED_CHUNKS`` chunks, whatever the thread
     count. A batch of at least ``min_rows`` rows is split into chunks of at least ``min_rows``
     (for a kernel whose arithmetic changes with the batch size at that threshold)."""
-    if getattr(_inside, "active", False):  # a chunk's own calls stay on its thread
+    # A chunk's own calls stay on its thread (map_chunks runs them serially); a fixed split
+    # stays as it is there, or a nested sum would depend on whether the caller ran threads.
+    if getattr(_inside, "active", False) and not fixed:
         return [slice(0, batch)]
     most = batch // min_rows if batch >= min_rows else batch
     count = min(most, batch * max(work_per_row, 1) // MIN_CHUNK_WORK,

@@ -49,6 +49,7 @@ from urllib.parse import urlsplit
 
 from tqdm.auto import tqdm
 
+from adjointsim import parallel
 from adjointsim.errors import UserError
 from adjointsim.files import write_text
 
@@ -76,7 +77,12 @@ class Study:
     (``float`` also admits an int, and null, which a non-finite number is written as), or a
     function of the cell giving them when cells differ. Declared, it is checked on every row
     read back or reused; without it, a reused row must hold what the other rows of cells with
-    the same configuration keys all hold, with values of the same kind."""
+    the same configuration keys all hold, with values of the same kind.
+
+    ``pack(cells)`` (with ``run_group``): groups of cells that train together as one ensemble
+    (cells that differ only in the seed, say); the runner submits one task per group, and
+    ``run_group(cells, run_dirs)`` returns their rows in order. A group with finished cells
+    runs only the others; each cell still gets its own row file."""
 
     name: str
     sizes: tuple[str, ...]
@@ -85,6 +91,8 @@ class Study:
     report: Callable[[list[dict], Path], str]
     prepare: Callable[[str, Path], dict] | None = None
     row_keys: RowKeys | Callable[[dict], RowKeys] | None = None
+    pack: Callable[[list[dict]], list[list[dict]]] | None = None
+    run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
 
     def expected_keys(self, cell: dict) -> RowKeys | None:
         """The declared result keys of ``cell``'s row, or None if the study declares none."""
@@ -489,31 +497,58 @@ def execute(run_cell: Callable[[dict, Path], dict], cell: dict, run_dir: str) ->
     return row
 
 
+def execute_group(run_group: Callable[[list[dict], list[Path]], list[dict]], cells: list[dict],
+                  out: str) -> list[dict]:
+    """A group of cells as :func:`execute` runs one: the unfinished ones together, then each
+    row written atomically."""
+    dirs = [Path(out) / c["id"] for c in cells]
+    rows = [finished_row(c, d) for c, d in zip(cells, dirs)]
+    todo = [i for i, r in enumerate(rows) if r is None]
+    if todo:
+        for i in todo:
+            dirs[i].mkdir(parents=True, exist_ok=True)
+        for i, row in zip(todo, run_group([cells[i] for i in todo], [dirs[i] for i in todo])):
+            rows[i] = _jsonable({**cells[i], **row})
+            write_text(dirs[i] / ROW_FILE, dumps(rows[i]))
+    return rows
+
+
+def _tasks(study: Study, todo: list[dict], out: Path) -> list[tuple[list[dict], Callable, tuple]]:
+    """What to submit: per cell, or per group where the study packs cells."""
+    if study.pack is None:
+        return [([c], execute, (study.run_cell, c, str(out / c["id"]))) for c in todo]
+    return [(g, execute_group, (study.run_group, g, str(out))) for g in study.pack(todo)]
+
+
 def _one_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
 def _run_here(study: Study, todo: list[dict], out: Path, retries: int, done) -> None:
-    for cell in todo:
+    for cells, work, args in _tasks(study, todo, out):
         for attempt in range(retries + 1):
             try:
-                row = execute(study.run_cell, cell, str(out / cell["id"]))
+                rows = work(*args)
             except Exception as e:  # reported per cell; the others still run
                 if attempt == retries:
-                    done(cell["id"], None, _one_line(e))
+                    for cell in cells:
+                        done(cell["id"], None, _one_line(e))
             else:
-                done(cell["id"], row, None)
+                for cell, row in zip(cells, rows if study.pack else [rows]):
+                    done(cell["id"], row, None)
                 break
 
 
-def _worker_execute(run_cell: Callable[[dict, Path], dict], cell: dict, run_dir: str) -> dict:
-    # Before the cell imports torch (the nanny sets these too; a bare worker may not).
+def _worker_execute(work: Callable, *args: Any) -> dict | list[dict]:
+    # Before the cell imports torch (the nanny sets these too; a bare worker may not). One
+    # solver thread too: the workers already use every core between them.
     os.environ.update(_ONE_THREAD)
+    parallel.set_threads(1)
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)
-    return execute(run_cell, cell, run_dir)
+    return work(*args)
 
 
 @contextmanager
@@ -557,20 +592,26 @@ def _run_on_dask(client, study: Study, todo: list[dict], out: Path, retries: int
     from distributed.client import FutureCancelledError
 
     futures = {}
-    for i, cell in enumerate(todo):
+    tasks = _tasks(study, todo, out)
+    for i, (cells, work, args) in enumerate(tasks):
         # cells start in the study's order (higher priority first): a study stopped early
         # has the cells it lists first
-        f = client.submit(_worker_execute, study.run_cell, cell, str(out / cell["id"]),
-                          key=f"{study.name}-{cell['id']}-{uuid.uuid4().hex[:8]}",
-                          retries=retries, pure=False, priority=len(todo) - i)
-        futures[f] = cell["id"]
+        f = client.submit(_worker_execute, work, *args,
+                          key=f"{study.name}-{cells[0]['id']}-{uuid.uuid4().hex[:8]}",
+                          retries=retries, pure=False, priority=len(tasks) - i)
+        futures[f] = cells
     for f in as_completed(futures):
+        ids = [c["id"] for c in futures[f]]
         try:
-            done(futures[f], f.result(), None)
+            result = f.result()
+            for cid, row in zip(ids, result if study.pack else [result]):
+                done(cid, row, None)
         except FutureCancelledError:
-            done(futures[f], None, "cancelled (the scheduler or its workers went away)")
+            for cid in ids:
+                done(cid, None, "cancelled (the scheduler or its workers went away)")
         except Exception as e:
-            done(futures[f], None, _describe_failure(e, retries))
+            for cid in ids:
+                done(cid, None, _describe_failure(e, retries))
 
 
 def _describe_failure(exc: BaseException, retries: int) -> str:

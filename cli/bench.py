@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import at_least, progress_option
+from .options import at_least, progress_option, threads_option
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -23,12 +23,15 @@ def arguments(p: argparse.ArgumentParser) -> None:
                    help="timing samples per point (default 5, with --quick 3)")
     p.add_argument("--no-exponax", dest="exponax", action="store_false",
                    help="leave out the exponax curve")
+    threads_option(p)
     progress_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    from adjointsim import parallel
     from adjointsim.bench import work_precision
 
+    parallel.set_threads(args.threads)
     work_precision.run(args.scene, args.out, args.quick, args.repeats, args.exponax,
                        args.progress)
     return 0

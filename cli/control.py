@@ -6,7 +6,14 @@ import argparse
 import math
 from pathlib import Path
 
-from .options import config_flags, overrides, run_options, write_result
+from .options import (
+    THREADS_HELP,
+    config_flags,
+    overrides,
+    run_options,
+    seeds_option,
+    write_result,
+)
 
 _HELPS = {
     "mode": "the gradient flow: R (regular BPTT), M, S, N, or C (combined)",
@@ -20,7 +27,7 @@ _HELPS = {
     "train": "training initial states",
     "test": "test initial states",
     "batch": "initial states per update",
-    "threads": "torch threads",
+    "threads": THREADS_HELP,
 }
 
 
@@ -30,6 +37,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("task", choices=tuple(TASKS), help="the control problem")
     run_options(p, "runs/control-TASK-MODE")
     config_flags(p, ControlConfig, ControlConfig.ACCEPTED, skip=("task", "out"), helps=_HELPS)
+    seeds_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,6 +51,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None and cfg.out == ControlConfig.out:  # neither flag nor file chose one
         cfg.out = str(Path("runs") / f"control-{cfg.task}-{cfg.mode}")
     out = Path(cfg.out)
+    if args.seeds:
+        return _ensemble(args, cfg, out)
     if args.resume:
         require_checkpoint(out)
     task = get_task(cfg.task, cfg.level)
@@ -56,4 +66,35 @@ def run(args: argparse.Namespace) -> int:
     loss = result["test_loss"]
     loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
     print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")
+    return 0
+
+
+def _ensemble(args: argparse.Namespace, cfg, out: Path) -> int:
+    """``--seeds``: one run per seed in ``out/seedN``, trained as one ensemble."""
+    import dataclasses
+
+    from adjointsim.errors import UserError
+    from adjointsim.files import write_json
+    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.train.ensemble import train_ensemble
+
+    if args.seed is not None:
+        raise UserError("--seed and --seeds: pass one")
+    if len(set(args.seeds)) < len(args.seeds):
+        raise UserError(f"--seeds {' '.join(map(str, args.seeds))} repeats a seed")
+    cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]
+    if args.resume:
+        for c in cfgs:
+            require_checkpoint(Path(c.out))
+    print(f"{cfg.task} ({cfg.level}), mode {cfg.mode}, clip {cfg.clip}: an ensemble of "
+          f"{len(cfgs)} seeds", flush=True)
+    with run_errors(out):
+        results = train_ensemble(cfgs, resume=args.resume, progress=args.progress,
+                                 overwrite=args.overwrite)
+    if args.json is not None:
+        write_json(args.json, results)
+    for c, r in zip(cfgs, results):
+        loss = r["test_loss"]
+        loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
+        print(f"seed {c.seed}: final test loss {loss}; run in {c.out}")
     return 0

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .options import at_least
+from .options import at_least, threads_option
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -18,6 +18,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--long-steps", type=at_least(1, 1_000_000), default=500,
                    help="length of the rollouts behind correlation time and stability "
                    "(default 500)")
+    threads_option(p, 1)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,6 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from adjointsim.train import data
     from adjointsim.train.evaluate import evaluate
     from adjointsim.train.studies.neural_steppers import STUDIES, load_model
+    from adjointsim.train.threads import use_threads
     from adjointsim.train.trainer import DTYPES, TrainConfig
 
     if not args.run.is_dir():
@@ -38,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     if not (args.run / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{args.run} holds no checkpoint.pt: not a training run, or one "
                                 "that saved nothing yet")
+    use_threads(args.threads)
     model, cfg = load_model(args.run)
     horizon = STUDIES[cfg.problem]["horizon"] if args.horizon is None else args.horizon
     metrics = evaluate(model, data.load(args.data or cfg.data), horizon, DTYPES[cfg.dtype],

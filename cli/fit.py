@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import at_least, config_flags, json_option, out_option, overrides, progress_option
+from .options import (
+    at_least,
+    config_flags,
+    json_option,
+    out_option,
+    overrides,
+    progress_option,
+    threads_option,
+)
 
 _HELPS = {
     "observations": "HDF5 file: /steps, /states, optional /u0, /controls; attrs scene, config "
@@ -42,6 +50,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, default=None, metavar="FILE.toml",
                    help="config keys from a TOML file; flags override them")
     progress_option(p)
+    threads_option(p)
     json_option(p, "also write the result (result.json's contents) here")
     p.add_argument("--no-plots", dest="plots", action="store_false",
                    help="no fit.png and history.png")
@@ -60,10 +69,12 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from adjointsim import parallel
     from adjointsim.files import write_json
     from adjointsim.fit_run import FitConfig, run_fit
     from adjointsim.run import run_errors
 
+    parallel.set_threads(args.threads)
     cfg = FitConfig.load(args.config, **overrides(args, FitConfig))
     out = args.out or Path(f"runs/fit-{cfg.demo or cfg.scene or 'fit'}")
     with run_errors(out):

@@ -8,11 +8,11 @@ import math
 import sys
 import time
 
-from adjointsim import registry
+from adjointsim import parallel, registry
 from adjointsim.errors import UserError
 from adjointsim.files import json_text, write_text
 
-from .options import at_least, json_option, seed_option
+from .options import at_least, json_option, seed_option, threads_option
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
@@ -24,6 +24,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64",
                    help="default float64")
     seed_option(p)
+    threads_option(p)
     json_option(p, "also write the rows here as JSON ('-': print only them)")
 
 
@@ -39,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--steps {args.steps} is more than the 100000 a gradient check needs; "
                         "choose fewer")
     names = registry.names() if args.all else args.names
+    parallel.set_threads(args.threads)
     for name in names:
         registry.get(name)  # unknown names fail before any work
     start = time.perf_counter()

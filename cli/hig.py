@@ -31,20 +31,19 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-updates", dest="max_updates", type=at_least(1), default=None,
                    metavar="N", help="stop after this many updates (config key max_updates; "
                    "default: no limit)")
-    threads_option(p)
+    threads_option(p, 1)
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-
     from adjointsim.run import require_checkpoint, run_errors
     from adjointsim.train.hig_problems import HigConfig, train_run
+    from adjointsim.train.threads import use_threads
 
     cfg = HigConfig.load(args.config, **overrides(args, HigConfig))
     out = args.out or Path("runs") / f"hig-{cfg.problem}-{cfg.optimizer}-seed{cfg.seed}"
     if args.resume:
         require_checkpoint(out)
-    torch.set_num_threads(args.threads)
+    use_threads(args.threads)
     with run_errors(out):
         result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
                            progress=args.progress)

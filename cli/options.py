@@ -2,7 +2,8 @@
 
 ``--out DIR`` the run directory, ``--resume`` / ``--overwrite`` what to do with a run already
 there, ``--config FILE.toml`` a file of config keys (flags override it), ``--seed N``,
-``--json PATH`` rows as JSON, ``--no-progress`` no progress bar, ``--threads N`` torch threads.
+``--json PATH`` rows as JSON, ``--no-progress`` no progress bar, ``--threads N`` the threads
+of the solvers (and of torch, in a command that trains).
 """
 
 from __future__ import annotations
@@ -43,6 +44,13 @@ def seed_option(p: argparse.ArgumentParser, default: int | None = 0) -> None:
                    help=f"random seed, ≥ 0 (default {default})")
 
 
+def seeds_option(p: argparse.ArgumentParser) -> None:
+    """``--seeds N [N ...]``: one run per seed, trained together as an ensemble."""
+    p.add_argument("--seeds", type=at_least(0, 2**63 - 1), nargs="+", default=None,
+                   metavar="N", help="train one run per seed, together as one ensemble, each "
+                   "in --out/seedN (replaces --seed)")
+
+
 def json_option(p: argparse.ArgumentParser, help_text: str = "also write the result rows "
                 "here as JSON") -> None:
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help=help_text)
@@ -53,9 +61,17 @@ def progress_option(p: argparse.ArgumentParser) -> None:
                    help="no progress bar")
 
 
-def threads_option(p: argparse.ArgumentParser, default: int | None = 1) -> None:
-    p.add_argument("--threads", type=at_least(1), default=default,
-                   help=f"torch threads (default {default})")
+#: what ``--threads`` (or the config key ``threads``) sets in a command that runs torch
+THREADS_HELP = ("threads of torch and of the solvers: the two take turns, each uses them all "
+                "in its turn")
+
+
+def threads_option(p: argparse.ArgumentParser, default: int | None = None) -> None:
+    """``--threads N``: None for a command that runs only solvers (every core unless
+    ``ADJOINTSIM_THREADS`` says otherwise), a count for one that runs torch."""
+    text = (f"{THREADS_HELP} (default {default})" if default is not None else
+            "solver threads (default: every core, or $ADJOINTSIM_THREADS when set)")
+    p.add_argument("--threads", type=at_least(1), default=default, help=text)
 
 
 def run_options(p: argparse.ArgumentParser, out_default: str, config: bool = True) -> None:

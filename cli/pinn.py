@@ -16,12 +16,14 @@ _HELPS = {
                  "config)",
     "reference": "the inverse-Dirichlet reference term: the problem's (res) or the term of "
                  "largest gradient spread (max)",
-    "epochs": "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000)",
+    "epochs": "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000, "
+              "sequential 3000)",
     "seed": "draws the points and the initial network (Sobolev: the target too)",
     "lr": "Adam's learning rate (Poisson and Sobolev: × 0.1 at epochs 10k, 20k and 30k)",
     "every": "epochs between weight refreshes",
     "alpha": "the weights' moving-average factor",
-    "width": "hidden units per layer; 0: the problem's (poisson 50, sobolev 64, ks-inverse 50)",
+    "width": "hidden units per layer; 0: the problem's (poisson 50, sobolev 64, ks-inverse 50, "
+             "sequential 50)",
     "depth": "hidden layers",
     "collocation": "collocation points (Poisson: drawn from the 100 x 100 grid)",
     "edge_points": "points per boundary edge (ks-inverse: times of the periodicity term)",
@@ -36,7 +38,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("problem", nargs="?", choices=PROBLEMS, default=None,
                    help="the problem (default poisson, or the --config file's)")
     run_options(p, "runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
-    threads_option(p)
+    threads_option(p, 1)
     config_flags(p, PinnConfig, PinnConfig.ACCEPTED, skip=("problem",), helps=_HELPS)
 
 

@@ -7,13 +7,14 @@ from pathlib import Path
 
 from adjointsim.errors import UserError
 
-from .options import config_flags, overrides, run_options, write_result
+from .options import THREADS_HELP, config_flags, overrides, run_options, write_result
 
 _HELPS = {
     "mode": "the unrolling schedule ONE, or a gradient flow (WIG, NOG; R, M, S, N, C)",
     "setup": "the network predicts the next state, or corrects the coarse solver's",
     "curriculum": 'stages "m:lr,m:lr,...", e.g. "1:1e-4,2:1e-5,4:1e-6"',
     "max_iterations": "stop after this many iterations in total (0: no limit)",
+    "threads": THREADS_HELP,
 }
 
 

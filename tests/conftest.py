@@ -5,6 +5,7 @@ package's structure)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -13,6 +14,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 # The NumPy references in benchmarks/numpy_ref are what several solvers are tested against.
 sys.path.insert(0, str(ROOT / "benchmarks"))
+# Two test workers share the machine's cores: one solver thread each unless a test says more.
+os.environ.setdefault("ADJOINTSIM_THREADS", "1")
 
 
 @pytest.fixture(scope="session")

@@ -12,12 +12,21 @@ where ``flow`` (:class:`adjointsim.train.unroll.GradientFlow`) decides where gra
 * ``cartpole``: 1–4 poles (``--poles``), 100 steps of Δt = 0.01, loss 1 − mean_i cos θ_i at
   the last step (swing-up from hanging);
 * ``guidance``: 2 drivers herd 4 evaders, 60 steps of Δt = 4/60, loss the mean over steps of
-  mean_e |x_e|² + r_c mean(c²) (``--control-weight`` r_c ∈ {1, 0.1, 0.01, 0.001});
+  mean_e |x_e|² + r_c mean(c²) (``--control-weight`` r_c ∈ {1, 0.1, 0.01, 0.001}): two terms,
+  ``tracking`` and ``control`` (r_c included), that ``--weighting`` may balance;
 * ``quantum``: ``schrodinger1d-cn`` with m = 1/2, 32 interior points, Δt = 0.0625, 128 steps,
   loss Σ_t (1 − |⟨ψ_n|ψ_t⟩|²) towards eigenstate n (``--target`` 3..5).
 
 Training: Adam, 256 training and 256 test initial states, batch 8, the last layer of every
-controller zero-initialised (c = 0 at the start, as in the reference runs). A run directory
+controller zero-initialised (c = 0 at the start, as in the reference runs). A loss of several
+terms may be balanced by a scheme of :mod:`adjointsim.train.weighting` (``weighting``; the
+default ``uniform`` trains the task's loss as it is). A scheme that weighs refreshes its λ
+from the terms' gradients through the loop (one batched reverse pass, with the flow's stops
+in place) and the flow takes the gradient of Σ_k λ_k L_k; ``pcgrad`` and ``config`` combine
+the terms' gradients themselves, so they go with the flows that are one plain reverse pass
+(R, M, S, N) and C is refused for every scheme that reads gradients. Where a scheme reads
+gradients, the epoch's first update does not diagnose cos(g_M, g_R) (its doubled batch would
+change the gradients the scheme reads). A run directory
 holds ``config.json``, ``checkpoint.pt`` (atomic, every epoch, and on Ctrl-C between two
 updates), ``history.csv`` (per epoch: mean minibatch loss, full training and test loss, update
 norm, cos(g_M, g_R) on the epoch's first minibatch, seconds), ``result.json`` and the plots
@@ -61,7 +70,9 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
 from .checkpoint import load_checkpoint, restore, save_checkpoint
-from .unroll import CLIPS, FLOWS, GradientFlow
+from .threads import use_threads
+from .unroll import CLIPS, FLOWS, GradientFlow, Update, clip_update
+from .weighting import GENERIC, SCHEMES, Weighting
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -76,6 +87,8 @@ class Task:
     steps: int
     #: values per state in the controller's widest layer (for the memory estimate)
     widest = 100
+    #: the loss's named terms, which a weighting may balance (see :meth:`step_terms`)
+    terms: tuple[str, ...] = ("loss",)
 
     def __init__(self, level: Any):
         if level not in self.levels:
@@ -118,6 +131,13 @@ class Task:
         """Loss term of the state x_{t+1} reached with control c_t (None: no term)."""
         raise NotImplementedError
 
+    def step_terms(self, x: torch.Tensor, c: torch.Tensor, t: int
+                   ) -> dict[str, torch.Tensor] | None:
+        """The loss's terms of the state x_{t+1} reached with control c_t, one per name of
+        :attr:`terms`, summing to :meth:`step_loss` (None: no term)."""
+        term = self.step_loss(x, c, t)
+        return None if term is None else {"loss": term}
+
     def total(self, terms: list[torch.Tensor]) -> torch.Tensor:
         return torch.stack(terms).sum()
 
@@ -142,9 +162,19 @@ class GuidanceTask(Task):
         super().__init__(float(level) if isinstance(level, int | float) else level)
         self.solver = adjointsim.get("guidance")(drivers=2, evaders=4, dt=4.0 / self.steps)
 
+    terms = ("tracking", "control")
+
+    def _costs(self, x: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """mean_e |x_e|² and mean(c²)."""
+        return (x[:, :2, self.solver.drivers:] ** 2).sum(dim=1).mean(), (c**2).mean()
+
     def step_loss(self, x, c, t):
-        evaders = x[:, :2, self.solver.drivers:]
-        return ((evaders**2).sum(dim=1).mean() + self.level * (c**2).mean()) / self.steps
+        track, effort = self._costs(x, c)
+        return (track + self.level * effort) / self.steps
+
+    def step_terms(self, x, c, t):
+        track, effort = self._costs(x, c)
+        return {"tracking": track / self.steps, "control": self.level * effort / self.steps}
 
 
 class QuantumTask(Task):
@@ -206,33 +236,39 @@ def closed_loop(
     x0: torch.Tensor,
     flow: GradientFlow | None = None,
     keep: bool = False,
-) -> tuple[torch.Tensor, list[torch.Tensor] | None]:
-    """Run the controller through the simulator; returns the loss and (if ``keep``) the
-    states x_0..x_n and controls. One solver call per step through
-    ``adjointsim.train.bridge.step``."""
+    terms: bool = False,
+) -> tuple[torch.Tensor | dict[str, torch.Tensor], list[torch.Tensor] | None]:
+    """Run the controller through the simulator; returns the loss (with ``terms``: each of
+    the task's terms, a dict) and (if ``keep``) the states x_0..x_n and controls. One solver
+    call per step through ``adjointsim.train.bridge.step``."""
     flow = flow or GradientFlow("R")
     x = flow.start(x0)
-    terms: list[torch.Tensor] = []
+    parts: list = []
     states, controls = ([x0], []) if keep else (None, None)
     for t in range(task.steps):
         c = task.control(flow.control(net, flow.net(x)))
         x = bridge.step(task.solver, flow.phys(x), c)
-        term = task.step_loss(x, c, t)
-        if term is not None:
-            terms.append(term)
+        part = task.step_terms(x, c, t) if terms else task.step_loss(x, c, t)
+        if part is not None:
+            parts.append(part)
         if keep:
             states.append(x.detach())
             controls.append(c.detach())
-    return task.total(terms), (states, controls) if keep else None
+    loss = ({n: task.total([p[n] for p in parts]) for n in task.terms} if terms
+            else task.total(parts))
+    return loss, (states, controls) if keep else None
 
 
 @torch.no_grad()
-def evaluate(task: Task, net: nn.Module, x0: torch.Tensor) -> float:
-    """Mean loss over the initial states ``x0`` (all at once, no tape)."""
+def evaluate(task: Task, net: nn.Module, x0: torch.Tensor, terms: bool = False
+             ) -> float | dict[str, float]:
+    """Mean loss over the initial states ``x0`` (all at once, no tape); with ``terms``, each of
+    the task's terms."""
     try:
-        return float(closed_loop(task, net, x0)[0])
+        loss = closed_loop(task, net, x0, terms=terms)[0]
     except (NonFiniteStateError, NonFiniteInputError, FloatingPointError):
-        return float("nan")
+        return dict.fromkeys(task.terms, float("nan")) if terms else float("nan")
+    return {n: float(v) for n, v in loss.items()} if terms else float(loss)
 
 
 # ----------------------------------------------------------------------------- config
@@ -257,6 +293,8 @@ class ControlConfig(Config):
     test: int = 256
     batch: int = 8
     dtype: str = "float32"
+    #: how the loss's terms are balanced (a task of one term takes uniform only)
+    weighting: str = "uniform"
     out: str = "runs/control"
     threads: int = 1
 
@@ -272,6 +310,7 @@ class ControlConfig(Config):
         "test": Interval(1),
         "batch": Interval(1),
         "dtype": tuple(DTYPES),
+        "weighting": GENERIC,
         "out": "a non-empty path",
         "threads": Interval(1),
     }
@@ -288,6 +327,14 @@ class ControlConfig(Config):
             if name != self.task and getattr(self, cls.knob) != defaults[cls.knob]:
                 raise UserError(f"config key {cls.knob!r}{where}: applies to the {name} task, "
                                 f"not {self.task}")
+        if self.weighting != "uniform" and len(TASKS[self.task].terms) < 2:
+            raise UserError(f"config key 'weighting'{where}: the {self.task} task's loss has "
+                            "one term; only uniform applies")
+        if self.mode == "C" and SCHEMES[self.weighting].needs == "grads":
+            others = [n for n in GENERIC if SCHEMES[n].needs != "grads"]
+            raise UserError(f"config key 'weighting'{where}: {self.weighting} reads the terms' "
+                            "gradients, which mode C's doubled batch does not give; choose "
+                            f"mode R, M, S or N, or one of {', '.join(others)}")
         if self.batch > self.train:
             raise UserError(f"config key 'batch'{where}: {self.batch} exceeds train "
                             f"({self.train}), the initial states it is drawn from")
@@ -337,7 +384,7 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
     cfg.validate()
     if resume and overwrite:
         raise UserError("--resume continues a run and --overwrite discards it: pass one")
-    torch.set_num_threads(cfg.threads)
+    use_threads(cfg.threads)
     out = Path(cfg.out)
     ckpt = _claim(cfg, out, resume, overwrite)
     if ckpt is not None and _finished(ckpt, cfg, out):
@@ -346,12 +393,16 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
     x_train, x_test = initial_states(cfg, task)
     net = build_net(cfg, task)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    weighting = None if cfg.weighting == "uniform" else Weighting(task.terms, cfg.weighting,
+                                                                   seed=cfg.seed)
     # the epoch's progress too, so that Ctrl-C between two updates resumes where it stopped
     state = {"epoch": 0, "finished": False, **_fresh_epoch()}
     history: list[dict] = []
     if ckpt is not None:
         restore(net, ckpt["net"], out / "checkpoint.pt")
         restore(opt, ckpt["optimizer"], out / "checkpoint.pt")
+        if weighting is not None:
+            restore(weighting, ckpt["weighting"], out / "checkpoint.pt")
         state, history = state | ckpt["state"], ckpt["history"]
         state["finished"] = False
     out.mkdir(parents=True, exist_ok=True)
@@ -360,7 +411,9 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
     def save() -> None:
         save_checkpoint({"config": cfg.as_dict(), "net": net.state_dict(),
                          "optimizer": opt.state_dict(), "state": dict(state),
-                         "history": history}, out / "checkpoint.pt")
+                         "history": history,
+                         **({} if weighting is None else {"weighting": weighting.state_dict()})},
+                        out / "checkpoint.pt")
 
     params = list(net.parameters())
     per_epoch = cfg.train // cfg.batch
@@ -374,7 +427,8 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
                 with uninterrupted():
                     start, i = time.perf_counter(), state["step"]
                     _update(cfg, task, net, opt, params,
-                            x_train[order[i * cfg.batch:(i + 1) * cfg.batch]], state)
+                            x_train[order[i * cfg.batch:(i + 1) * cfg.batch]], state,
+                            weighting, state["epoch"] * per_epoch + i)
                     state["step"] += 1
                     state["seconds"] += time.perf_counter() - start
             with uninterrupted():
@@ -388,8 +442,18 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
         raise
     finally:
         bar.close()
+    return _finish(cfg, task, net, x_test, history, weighting)
+
+
+def _finish(cfg: ControlConfig, task: Task, net: nn.Module, x_test: torch.Tensor,
+            history: list[dict], weighting: Weighting | None = None) -> dict:
+    """A finished run's plots and ``result.json``; returns the result."""
+    out = Path(cfg.out)
     result = {**cfg.as_dict(), "level": cfg.level, "test_loss": history[-1]["test_loss"],
-              "train_loss": history[-1]["train_loss"], "parameters": sum(p.numel() for p in params),
+              "train_loss": history[-1]["train_loss"],
+              "test_terms": evaluate(task, net, x_test, terms=True),
+              "weights": None if weighting is None else dict(weighting.weights),
+              "parameters": sum(p.numel() for p in net.parameters()),
               "seconds": float(sum(h["seconds"] for h in history))}
     # the plots first: a run stopped while plotting has no result.json and resumes to them
     plot_history(out / "test_loss.png", {cfg.mode: history}, "epoch", "test_loss", "epoch",
@@ -410,16 +474,30 @@ def _fresh_epoch() -> dict:
 
 
 def _update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Optimizer,
-            params: list[torch.Tensor], x0: torch.Tensor, state: dict) -> None:
-    """One minibatch's update, recorded in the epoch's progress (``state``)."""
-    first = state["step"] == 0
+            params: list[torch.Tensor], x0: torch.Tensor, state: dict,
+            weighting: Weighting | None = None, step: int = 0) -> None:
+    """One minibatch's update (the run's ``step``-th), recorded in the epoch's progress
+    (``state``); ``weighting`` balances the task's terms (None: its loss as it is)."""
+    reads = weighting is not None and weighting.scheme.needs == "grads"
+    first = state["step"] == 0 and not reads
     flow = GradientFlow(cfg.mode, cfg.clip, diagnose=first)
     try:
-        loss = closed_loop(task, net, x0, flow)[0]
+        loss = closed_loop(task, net, x0, flow, terms=weighting is not None)[0]
     except (NonFiniteStateError, NonFiniteInputError):
         state["skipped"] += 1  # the simulator blew up under this controller: skip the update
         return
-    update = flow.backward(loss, params)
+    if weighting is None:
+        update = flow.backward(loss, params)
+    elif weighting.scheme.direction:
+        for p in params:
+            p.grad = None
+        loss = weighting.backward(loss, params, step)
+        update = Update(clip_update([p.grad for p in params], cfg.clip))
+        for p, g in zip(params, update.grads):
+            p.grad = g
+    else:
+        loss = weighting.weigh(loss, params, step)
+        update = flow.backward(loss, params)
     if not (math.isfinite(float(loss.detach())) and math.isfinite(update.norm())):
         state["skipped"] += 1
         return
@@ -431,14 +509,17 @@ def _update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Opt
 
 
 def _end_epoch(cfg: ControlConfig, task: Task, net: nn.Module, x_train: torch.Tensor,
-               x_test: torch.Tensor, state: dict, history: list[dict]) -> None:
-    """The epoch's history row (with the full training and test losses); the next epoch."""
+               x_test: torch.Tensor, state: dict, history: list[dict],
+               losses: tuple[float, float] | None = None) -> None:
+    """The epoch's history row (with the full training and test losses, evaluated here unless
+    ``losses`` gives them); the next epoch."""
     start = time.perf_counter()
+    train, test = losses or (evaluate(task, net, x_train), evaluate(task, net, x_test))
     row = {
         "epoch": state["epoch"] + 1,
         "batch_loss": float(np.mean(state["losses"])) if state["losses"] else float("nan"),
-        "train_loss": evaluate(task, net, x_train),
-        "test_loss": evaluate(task, net, x_test),
+        "train_loss": train,
+        "test_loss": test,
         "update_norm": float(np.mean(state["norms"])) if state["norms"] else float("nan"),
         "cos_mr": state["cos"],
         "skipped": state["skipped"],
@@ -465,7 +546,9 @@ def _claim(cfg: ControlConfig, out: Path, resume: bool, overwrite: bool) -> dict
         return None
     ckpt = load_checkpoint(ckpt_path, ("config", "net", "optimizer", "state", "history"),
                            recover=f"delete it, or {again}")
-    differ = [k for k in differing(cfg.as_dict(), ckpt["config"]) if k not in RESUMABLE]
+    # a run recorded before the weighting was a key trained its loss as it is
+    recorded = {"weighting": "uniform", **ckpt["config"]}
+    differ = [k for k in differing(cfg.as_dict(), recorded) if k not in RESUMABLE]
     if differ:
         raise RunExists(f"{out} holds a run of another configuration (differs in "
                         f"{', '.join(differ)}); {again}")

@@ -57,13 +57,15 @@ from adjointsim.run import (
 )
 
 from .checkpoint import load_run_checkpoint, save_checkpoint
+from .threads import use_threads
 from .weighting import ALIASES, RECORDED, RULES, Weighting, canonical_rule, scheme_name
 
-PROBLEMS = ("poisson", "sobolev", "ks-inverse")
+PROBLEMS = ("poisson", "sobolev", "ks-inverse", "sequential")
 #: each problem's network: activation and the default width (``width = 0``)
-NETWORKS = {"poisson": ("tanh", 50), "sobolev": ("sin", 64), "ks-inverse": ("tanh", 50)}
+NETWORKS = {"poisson": ("tanh", 50), "sobolev": ("sin", 64), "ks-inverse": ("tanh", 50),
+            "sequential": ("tanh", 50)}
 #: each problem's default epochs (``epochs = 0``)
-EPOCHS = {"poisson": 30001, "sobolev": 30001, "ks-inverse": 6000}
+EPOCHS = {"poisson": 30001, "sobolev": 30001, "ks-inverse": 6000, "sequential": 3000}
 ROUTES = ("taylor", "autograd")
 K_RANGE = (1, 6)
 #: the authors' reported relative L2 errors (Adam, ±50%: read off their plot), per k
@@ -465,8 +467,70 @@ class KSInverse(PinnProblem):
         return out
 
 
+class Sequential(PinnProblem):
+    """A synthetic sequential problem in the setting of the note's active-turbulence problem:
+    objectives of very different scales join one after another. The target is
+    u* = sin(2πx) sin(2πy) on [0, 1]², with three objectives at ``collocation`` uniform
+    points, each met exactly by u*:
+
+    * ``data``: MSE of u against u* (scale 1);
+    * ``grad``: 10⁻³ × MSE of ∂x u + ∂y u against u*'s (a weak objective);
+    * ``lap``: 10³ × MSE of Δu against Δu* = −8π² u* (a strong one).
+
+    ``data`` alone for the first third of the epochs, ``+ grad`` for the second, ``+ lap``
+    for the last; the ID reference is ``data``. No lr steps. Network [2, 50×5, 1] tanh as
+    for Poisson. Metric: relative L2 of u on the 100 × 100 grid; the result's phases hold
+    every term and gradient spread at the end of each phase, which shows whether ``data`` is
+    forgotten when a weak or a strong objective joins."""
+
+    terms = ("data", "grad", "lap")
+    reference = "data"
+    scales = {"data": 1.0, "grad": 1e-3, "lap": 1e3}
+    floats_per_unit = (60.0, 0.0)  # second-order jets along both axes
+    title = "sequential (scales 1, 1e-3, 1e3)"
+
+    def __init__(self, cfg: PinnConfig):
+        self.cfg = cfg
+        rng = np.random.default_rng([cfg.seed, 30])
+        g = np.linspace(0.0, 1.0, 100)
+        gx, gy = np.meshgrid(g, g, indexing="ij")
+        self.grid = torch.from_numpy(np.stack([gx.ravel(), gy.ravel()], axis=1)).float()
+        self.u_grid = self.exact(self.grid)
+        self.x_col = torch.from_numpy(rng.uniform(0.0, 1.0, (cfg.collocation, 2))).float()
+        w = 2.0 * math.pi
+        x, y = self.x_col[:, :1], self.x_col[:, 1:]
+        self.targets = (self.exact(self.x_col),
+                        w * (torch.cos(w * x) * torch.sin(w * y)
+                             + torch.sin(w * x) * torch.cos(w * y)),
+                        -2.0 * w**2 * self.exact(self.x_col))
+
+    @staticmethod
+    def exact(x: torch.Tensor) -> torch.Tensor:
+        return torch.sin(2.0 * math.pi * x[:, :1]) * torch.sin(2.0 * math.pi * x[:, 1:])
+
+    def model(self) -> Standardized:
+        return _tanh_mlp(self.cfg, self.x_col.mean(dim=0), self.x_col.std(dim=0))
+
+    def active(self, epoch: int) -> tuple[str, ...]:
+        return self.terms[: 1 + 3 * epoch // self.cfg.epochs]
+
+    def milestones(self, epochs: int) -> list[int]:
+        return []
+
+    def losses(self, model: Standardized, route: str = "taylor",
+               terms: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
+        terms = terms or self.terms
+        if terms == ("data",):
+            outs = [model(self.x_col)]
+        else:
+            j = model.jets(self.x_col, 2)
+            outs = [j[0], j[1].sum(dim=1), j[2].sum(dim=1)]
+        return {t: self.scales[t] * ((o - y) ** 2).mean()
+                for t, o, y in zip(self.terms, outs, self.targets) if t in terms}
+
+
 _PROBLEMS: dict[str, type[PinnProblem]] = {"poisson": Poisson, "sobolev": Sobolev,
-                                           "ks-inverse": KSInverse}
+                                           "ks-inverse": KSInverse, "sequential": Sequential}
 
 
 def make_problem(cfg: PinnConfig) -> PinnProblem:
@@ -487,11 +551,11 @@ def make_weighting(cfg: PinnConfig, problem: PinnProblem) -> Weighting:
 # ----------------------------------------------------------------------------- training
 def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: bool = True,
               plot: bool = True, overwrite: bool = False, threads: int = 1) -> dict:
-    """Train ``cfg`` in ``out`` (see the module doc) on ``threads`` torch threads; returns the
-    result (also result.json). A run already in ``out`` is continued with ``resume`` (a
+    """Train ``cfg`` in ``out`` (see the module doc) on ``threads`` torch and solver threads;
+    returns the result (also result.json). A run already in ``out`` is continued with ``resume`` (a
     finished one's result is returned as it is), discarded with ``overwrite``, and otherwise
     never overwritten."""
-    torch.set_num_threads(threads)
+    use_threads(threads)
     problem = make_problem(cfg)
     config = cfg.as_dict()
     out = Path(out)
@@ -550,11 +614,15 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
             "seconds": state["seconds"]})
 
     def end_of_phase(epoch: int) -> None:
-        """Every term and coefficient when a phase (the set of trained terms) ends."""
+        """Every term, its gradient spread (as ID measures it, whether trained or not) and
+        every coefficient when a phase (the set of trained terms) ends."""
         with torch.enable_grad():
-            losses = {t: float(v.detach()) for t, v in problem.losses(model, cfg.route).items()}
+            terms = problem.losses(model, cfg.route)
+            rows = weighting.gradients(list(terms.values()), params)
+        losses = {t: float(v.detach()) for t, v in terms.items()}
+        spreads = {f"spread/{t}": float(r.std(unbiased=False)) for t, r in zip(terms, rows)}
         state["phases"].append({"epoch": epoch, "active": list(problem.active(epoch - 1)),
-                                **losses, "rel_l2": problem.rel_l2(model),
+                                **losses, **spreads, "rel_l2": problem.rel_l2(model),
                                 **problem.extras(model)})
 
     bar = None

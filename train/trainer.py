@@ -47,6 +47,7 @@ from .checkpoint import load_checkpoint, restore, save_checkpoint
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
+from .threads import use_threads
 from .unroll import MODES, GradientFlow, schedule, unrolled_loss
 
 CONV_NETS = {"resnet": ResNet, "dilated": DilatedResNet, "unet": UNet}
@@ -123,7 +124,8 @@ class TrainConfig(Config):
     rollback: float = 0.0
     checkpoint_every: int = 200
     seed: int = 0
-    #: torch threads; small convolutions run fastest on one, and 2-core machines are shared
+    #: torch's and the solver's threads (they take turns); small convolutions run fastest on
+    #: one, and 2-core machines are shared
     threads: int = 1
     #: stop after this many iterations in total (for tests and interrupted-run drills)
     max_iterations: int = 0
@@ -218,7 +220,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     checkpoint; a run without one starts over) or ``overwrite`` (discard it) is given.
     """
     cfg.validate()
-    torch.set_num_threads(cfg.threads)
+    use_threads(cfg.threads)
     out = Path(cfg.out)
     _claim(out, asdict(cfg), resume, overwrite)
     out.mkdir(parents=True, exist_ok=True)

@@ -454,6 +454,10 @@ class ConFIG(Scheme):
 
 #: the scheme names, as the command line offers them
 RULES = tuple(SCHEMES)
+#: the schemes any loss of named terms takes; the others need what only some problems have:
+#: analytic weights (``epsilon-optimal``) or per-sample residuals (``ntk``)
+GENERIC = tuple(n for n, s in SCHEMES.items()
+                if s.needs != "residuals" and n != "epsilon-optimal")
 #: other spellings accepted on the command line, mapped to a scheme
 ALIASES = {"id": "inverse-dirichlet", "maxavg": "max-avg", "analytic": "fixed"}
 #: earlier names of schemes, kept as written: runs and study rows were recorded under them, and
@@ -585,6 +589,56 @@ class Weighting:
             rows.append(torch.cat([gi.reshape(-1) for gi in g]))
         return torch.stack(rows)
 
+    def _refresh(self, losses: Mapping[str, torch.Tensor], params: Sequence[torch.Tensor],
+                 step: int, residuals: Callable[[], Mapping[str, torch.Tensor]] | None,
+                 ) -> torch.Tensor | None:
+        """Refresh when :meth:`due`; returns the active terms' gradients as rows when it took
+        them (the graph kept), else None."""
+        unknown = sorted(set(losses) - set(self.names))
+        if unknown:
+            raise ValueError(f"unknown loss term(s) {unknown}; terms: {self.names}")
+        active = [n for n in self.names if n in losses]
+        values = {n: losses[n].detach() for n in active}
+        record = step % self.every == 0
+        if not self.due(step):
+            return None
+        if self.scheme.needs == "losses":
+            self.update(step, losses=values, record=record)
+            return None
+        if self.scheme.needs == "residuals":
+            if residuals is None:
+                raise ValueError("ntk weighting needs each term's per-sample residuals: "
+                                 "pass residuals= to Weighting.backward")
+            given = residuals()
+            r = {n: given[n].reshape(-1) for n in active if n in given}
+            rows = self.gradients([x for v in r.values() for x in v], params)
+            self.update(step, dict(zip(r, rows.split([len(v) for v in r.values()]))), values,
+                        record)
+            return None
+        rows = self.gradients([losses[n].reshape(()) for n in active], params)
+        if self.scheme.direction:
+            if record:
+                self.history.append({"step": int(step), **self.weights})
+        else:
+            grads = dict(zip(active, rows))
+            if self.scheme.layer:
+                grads = {n: g[_last_layer(params)] for n, g in grads.items()}
+            self.update(step, grads, values, record)
+        return rows
+
+    def weigh(self, losses: Mapping[str, torch.Tensor], params: Iterable[torch.Tensor],
+              step: int) -> torch.Tensor:
+        """Σ_k λ_k L_k with its graph, the weights refreshed first when :meth:`due` (from one
+        batched reverse pass over the terms, the graph kept), for a caller that takes the
+        gradient of the total its own way (a gradient flow of a closed loop, clipping). A
+        direction scheme has no weights to give: use :meth:`backward`."""
+        if self.scheme.direction:
+            raise ValueError(f"{self.scheme.name} combines the terms' gradients into an update "
+                             "direction, not weights: use Weighting.backward")
+        params = [p for p in params if p.requires_grad]
+        self._refresh(losses, params, step, None)
+        return self.total(losses)
+
     def backward(
         self, losses: Mapping[str, torch.Tensor], params: Iterable[torch.Tensor], step: int,
         residuals: Callable[[], Mapping[str, torch.Tensor]] | None = None,
@@ -594,37 +648,13 @@ class Weighting:
         :meth:`due`. ``residuals`` returns each active term's per-sample residuals (``ntk``
         only; called on refresh steps). Returns the weighted total (detached)."""
         params = [p for p in params if p.requires_grad]
-        unknown = sorted(set(losses) - set(self.names))
-        if unknown:
-            raise ValueError(f"unknown loss term(s) {unknown}; terms: {self.names}")
+        rows = self._refresh(losses, params, step, residuals)
         active = [n for n in self.names if n in losses]
-        needs = self.scheme.needs
-        record = step % self.every == 0
-        if self.due(step) and needs in ("grads", "residuals"):
-            if needs == "residuals":
-                if residuals is None:
-                    raise ValueError("ntk weighting needs each term's per-sample residuals: "
-                                     "pass residuals= to Weighting.backward")
-                given = residuals()
-                r = {n: given[n].reshape(-1) for n in active if n in given}
-                rows = self.gradients([x for v in r.values() for x in v], params)
-                grads = dict(zip(r, rows.split([len(v) for v in r.values()])))
-            else:
-                rows = self.gradients([losses[n].reshape(()) for n in active], params)
-                grads = dict(zip(active, rows))
-                if self.scheme.layer:
-                    grads = {n: g[_last_layer(params)] for n, g in grads.items()}
-            if self.scheme.direction:
-                self._apply(params, self.scheme.combine(rows, step))
-                if record:
-                    self.history.append({"step": int(step), **self.weights})
-                return self.total({n: losses[n].detach() for n in active})
-            self.update(step, grads, {n: losses[n].detach() for n in active}, record)
-            if needs == "grads":
-                self._apply(params, sum(self.weights[n] * row for n, row in zip(active, rows)))
-                return self.total({n: losses[n].detach() for n in active})
-        elif self.due(step):
-            self.update(step, losses={n: losses[n].detach() for n in active}, record=record)
+        if rows is not None:
+            # the terms' gradients are at hand: the update needs no further reverse pass
+            self._apply(params, self.scheme.combine(rows, step) if self.scheme.direction
+                        else sum(self.weights[n] * row for n, row in zip(active, rows)))
+            return self.total({n: losses[n].detach() for n in active})
         total = self.total(losses)
         total.backward()
         return total.detach()

@@ -220,3 +220,29 @@ def test_every_training_command_takes_json_path(tiny, tmp_path, capsys):
         with pytest.raises(SystemExit):
             main([command, "--help"])
         assert "--json PATH" in capsys.readouterr().out, command
+
+
+@pytest.mark.parametrize("command", ["gradcheck", "bench", "fit", "data", "eval", "train",
+                                     "control", "pinn", "hig"])
+def test_every_command_that_runs_solvers_takes_threads(command, capsys):
+    """A command that runs only solvers uses every core unless told; one that runs torch one
+    thread, for torch and the solvers alike."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    solver_only = command in ("gradcheck", "bench", "fit", "data")
+    expected = ("solver threads (default: every core" if solver_only
+                else "threads of torch and of the solvers")
+    assert "--threads THREADS" in text and expected in text, command
+
+
+def test_threads_sets_the_solver_threads(capsys):
+    from adjointsim import parallel
+
+    try:
+        assert main(["gradcheck", "cartpole", "--steps", "3", "--threads", "3"]) == 0
+        assert parallel.threads() == 3
+    finally:
+        parallel.set_threads(None)
+    assert main(["gradcheck", "cartpole", "--threads", "0"]) == 2
+    assert "--threads: must be ≥ 1, not 0" in capsys.readouterr().err

@@ -14,6 +14,7 @@ import os
 import time
 from pathlib import Path
 
+from adjointsim import parallel
 from adjointsim.files import write_text
 from adjointsim.runner import Study, register_study
 
@@ -32,7 +33,8 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
 
     with open(run_dir.parent / "calls.log", "a") as log:
         log.write(f"{cell['id']} {os.getpid()}\n")
-    row = {"pid": os.getpid(), "threads": torch.get_num_threads()}
+    row = {"pid": os.getpid(), "threads": torch.get_num_threads(),
+           "solver_threads": parallel.threads()}
     if cell["id"] == "raises" and (run_dir.parent / "FAIL").exists():
         raise ValueError("boom in cell raises\nsecond line")
     if cell["id"] == "dies":

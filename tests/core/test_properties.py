@@ -1,10 +1,14 @@
-"""Registry-wide property tests: every registered solver, drawn scenes, all three checks."""
+"""Registry-wide property tests: every registered solver, drawn scenes, all three checks; the
+drawn ones on one solver thread and on two, every call split into chunks."""
+
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
 import adjointsim
+from adjointsim import parallel
 from adjointsim.check import TOLERANCES, check_stepper
 from adjointsim.strategies import check_cases, scenes
 
@@ -15,8 +19,16 @@ SETTINGS = settings(
 )
 
 
+@pytest.fixture(params=[1, 2], ids=["1-thread", "2-threads"])
+def threads(request, monkeypatch) -> Iterator[int]:
+    """The solver threads, with every call large enough to split (results must not change)."""
+    monkeypatch.setattr(parallel, "MIN_CHUNK_WORK", 1)
+    with parallel.using_threads(request.param):
+        yield request.param
+
+
 @pytest.mark.parametrize("name", NAMES)
-def test_adjoint_checks_on_drawn_scenes(name):
+def test_adjoint_checks_on_drawn_scenes(name, threads):
     @SETTINGS
     @given(check_cases(adjointsim.get(name)))
     def run(case):
@@ -36,7 +48,7 @@ def test_default_scene_passes_in_float32(name):
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_rollout_is_repeated_steps_and_float32_stays_float32(name):
+def test_rollout_is_repeated_steps_and_float32_stays_float32(name, threads):
     @SETTINGS
     @given(scenes(adjointsim.get(name)))
     def run(stepper):

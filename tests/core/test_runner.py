@@ -36,7 +36,9 @@ def _calls(out: Path) -> list[str]:
 
 
 def test_local_cluster_retries_reports_failures_and_reruns_nothing(tmp_path, monkeypatch, capsys):
-    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)  # the runner gives one thread itself
+    # the runner gives one thread itself, to torch and to the solvers
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("ADJOINTSIM_THREADS", raising=False)
     out = tmp_path / "study"
     out.mkdir()
     (out / "FAIL").touch()
@@ -48,12 +50,12 @@ def test_local_cluster_retries_reports_failures_and_reruns_nothing(tmp_path, mon
     assert "1 cell(s) failed, 5 finished" in err
     rows = json.loads((out / "rows.json").read_text())
     assert [r["id"] for r in rows] == ["ok-0", "ok-1", "ok-2", "ok-3", "dies"]
-    # Worker processes (not this one), one torch thread each, every row file written: the two
-    # started, and the nanny's replacement for the one the "dies" cell kills, which may take
-    # cells too when the machine is slow.
+    # Worker processes (not this one), one torch and one solver thread each, every row file
+    # written: the two started, and the nanny's replacement for the one the "dies" cell kills,
+    # which may take cells too when the machine is slow.
     pids = {r["pid"] for r in rows}
     assert len(pids) in (2, 3) and os.getpid() not in pids
-    assert all(r["threads"] == 1 for r in rows)
+    assert all(r["threads"] == 1 and r["solver_threads"] == 1 for r in rows)
     assert all(json.loads((out / r["id"] / "row.json").read_text()) == r for r in rows)
     assert not (out / "raises" / "row.json").exists()
     assert (out / "table.txt").read_text().count("\n") == 5
@@ -302,8 +304,8 @@ def _study(out: Path, name: str, seeds: int, *extra: str) -> list[str]:
 
 
 @pytest.mark.parametrize("bad, says", [
-    ({"id": "ok-2", "seed": 2}, "lacks 'pid', 'threads', 'value'"),
-    ({"id": "ok-2", "seed": 2, "pid": 1, "threads": 1, "value": "1.5"},
+    ({"id": "ok-2", "seed": 2, "pid": 1, "solver_threads": 1}, "lacks 'threads', 'value'"),
+    ({"id": "ok-2", "seed": 2, "pid": 1, "threads": 1, "solver_threads": 1, "value": "1.5"},
      "holds '1.5' under 'value' where the other rows hold a number"),
 ])
 def test_reused_rows_are_checked_whole_and_a_bad_one_copies_nothing(bad, says, tmp_path,

@@ -537,3 +537,28 @@ def test_the_study_table_shows_a_blown_up_model_as_nan():
            "interpolation": {"rel_error": None}, "extrapolation": {"rel_error": 0.1}}
     text = table([row, dict(row, seed=1, rel_error=0.1)])
     assert "nan 1.00e-01" in text
+
+
+def test_training_gives_torch_and_the_solvers_the_threads_it_is_given(tiny, tmp_path,
+                                                                      monkeypatch):
+    from adjointsim import parallel
+    from adjointsim.cli import main
+    from adjointsim.train import trainer
+
+    seen = []
+    real = trainer.unrolled_loss
+
+    def spy(*args, **kwargs):
+        seen.append((parallel.threads(), torch.get_num_threads()))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainer, "unrolled_loss", spy)
+    before = torch.get_num_threads()
+    try:
+        assert main(["train", "--data", str(tiny), "--out", str(tmp_path / "run"), "--width",
+                     "4", "--blocks", "1", "--unroll", "2", "--batch", "2", "--max-iterations",
+                     "2", "--threads", "2", "--no-progress"]) == 0
+    finally:
+        parallel.set_threads(None)
+        torch.set_num_threads(before)
+    assert len(seen) == 2 and set(seen) == {(2, 2)}

@@ -1,7 +1,8 @@
 """Loss weighting (train/weighting.py): every scheme against a dense reference computed here
 (hand computations, scipy's QP, explicit projections and Jacobians), guards, the batched
 per-term gradients, use on a loss through a solver (the guidance task's state cost + control
-cost, gradients via the hand-written adjoint), and a tiny PINN run per scheme."""
+cost, gradients via the hand-written adjoint; the controller's own update under a scheme), and
+a tiny PINN run per scheme."""
 
 import math
 
@@ -418,6 +419,109 @@ def test_a_differentiable_physics_loss_takes_any_scheme(rule):
                                              for n, v in terms.items()))
 
 
+def _controller(mode="R", weighting="uniform", clip="none"):
+    """A guidance controller whose last layer is not zero (so both terms pull), a batch of
+    four initial states, and a configuration."""
+    from adjointsim.train import control
+
+    cfg = control.ControlConfig(task="guidance", mode=mode, weighting=weighting, clip=clip,
+                                train=4, test=4, batch=4, dtype="float64")
+    cfg.validate()
+    task = control.get_task("guidance", cfg.level)
+    net = control.build_net(cfg, task)
+    for m in net.modules():
+        if isinstance(m, torch.nn.Linear):
+            m.reset_parameters()
+    return cfg, task, net, control.initial_states(cfg, task)[0]
+
+
+def _one_update(cfg, task, net, x0, weighting):
+    """The gradient that control's update hands the optimiser (whose step does nothing)."""
+    from types import SimpleNamespace
+
+    from adjointsim.train import control
+
+    params = list(net.parameters())
+    state = control._fresh_epoch()
+    control._update(cfg, task, net, SimpleNamespace(step=lambda: None), params, x0, state,
+                    weighting, 0)
+    return torch.cat([p.grad.reshape(-1) for p in params]), state
+
+
+def test_the_guidance_loss_is_the_sum_of_its_terms():
+    from adjointsim.train import control
+
+    cfg, task, net, x0 = _controller()
+    loss = control.closed_loop(task, net, x0)[0]
+    terms = control.closed_loop(task, net, x0, terms=True)[0]
+    assert set(terms) == {"tracking", "control"} == set(task.terms)
+    assert float(terms["control"].detach()) > 0
+    assert float(sum(terms.values()).detach()) == pytest.approx(float(loss.detach()), rel=1e-12)
+    got = control.evaluate(task, net, x0, terms=True)
+    assert got == pytest.approx({n: float(v.detach()) for n, v in terms.items()})
+
+
+def test_a_controller_update_follows_the_schemes_rule():
+    """ID through control's update: the term of the larger spread keeps λ = 1, the other
+    gets (1 − α) + α s_ref / s_k, and the update is Σ λ_k g_k; pcgrad's update is the
+    projected sum, clipped as configured; uniform's is the plain gradient of the loss."""
+    from adjointsim.train import control
+
+    cfg, task, net, x0 = _controller()
+    params = list(net.parameters())
+    terms = control.closed_loop(task, net, x0, terms=True)[0]
+    g = {n: _flat_grad(v, params) for n, v in terms.items()}
+    plain, state = _one_update(cfg, task, net, x0, None)
+    torch.testing.assert_close(plain, g["tracking"] + g["control"])
+    assert math.isfinite(state["cos"])  # uniform keeps the diagnosis
+
+    cfg, task, net, x0 = _controller(weighting="inverse-dirichlet")
+    w = Weighting(task.terms, cfg.weighting)
+    got, state = _one_update(cfg, task, net, x0, w)
+    spread = {n: float(v.std(unbiased=False)) for n, v in g.items()}
+    top = max(spread, key=spread.get)
+    low = min(spread, key=spread.get)
+    lam = 0.5 + 0.5 * spread[top] / spread[low]
+    assert w.weights == pytest.approx({top: 1.0, low: lam}) and lam > 1.5
+    torch.testing.assert_close(got, g[top] + lam * g[low])
+    assert math.isnan(state["cos"])  # no doubled batch under a scheme that reads gradients
+
+    cfg, task, net, x0 = _controller(weighting="pcgrad", clip="norm")
+    got, _ = _one_update(cfg, task, net, x0, Weighting(task.terms, "pcgrad"))
+    a, b = g["tracking"], g["control"]
+    expected = _projected(a, [b]) + _projected(b, [a])
+    torch.testing.assert_close(got, expected / max(float(expected.norm()), 1.0))
+
+
+def test_controller_weighting_is_refused_where_it_cannot_act():
+    from adjointsim.errors import UserError
+    from adjointsim.train import control
+
+    with pytest.raises(UserError, match="cartpole task's loss has one term"):
+        control.ControlConfig(task="cartpole", weighting="inverse-dirichlet").validate()
+    with pytest.raises(UserError, match="mode C's doubled batch"):
+        control.ControlConfig(task="guidance", mode="C", weighting="mgda").validate()
+    control.ControlConfig(task="guidance", mode="C", weighting="softadapt").validate()
+    with pytest.raises(UserError, match="weighting"):
+        control.ControlConfig(task="guidance", weighting="ntk").validate()
+
+
+def test_a_weighted_controller_run_resumes_to_the_uninterrupted_run(tmp_path):
+    from adjointsim.train import control
+
+    def cfg(out, epochs):
+        return control.ControlConfig(task="guidance", weighting="relobralo", epochs=epochs,
+                                     train=8, test=4, batch=4, out=str(tmp_path / out))
+
+    whole = control.train_controller(cfg("a", 2), progress=False)
+    control.train_controller(cfg("b", 1), progress=False)
+    resumed = control.train_controller(cfg("b", 2), resume=True, progress=False)
+    assert resumed["weights"] == whole["weights"] and whole["weights"] != {
+        "tracking": 1.0, "control": 1.0}
+    assert resumed["test_loss"] == whole["test_loss"]
+    assert sum(whole["test_terms"].values()) == pytest.approx(whole["test_loss"], rel=1e-5)
+
+
 # ----------------------------------------------------------------------------- pinn
 @pytest.mark.parametrize("rule", [*RULES, "fixed"])
 def test_a_tiny_poisson_run_takes_every_scheme(rule, tmp_path):
@@ -457,3 +561,23 @@ def test_pinn_offers_every_scheme_and_refuses_what_a_problem_lacks():
     for rule in ("ntk", "epsilon-optimal", "fixed"):
         with pytest.raises(UserError, match="no analytic weights and no per-sample residuals"):
             PinnConfig(problem="sobolev", weighting=rule).validate()
+
+
+def test_the_sequential_problem_records_each_phase_and_the_spreads_when_terms_join(tmp_path):
+    """Terms of scales 1, 1e-3 and 1e3 join one after another; each phase's end holds every
+    term and its gradient spread, the weak term's spread below data's, the strong one's far
+    above, and ID lifts the weak term (data is its reference)."""
+    from adjointsim.train.pinn import PinnConfig, train_run
+
+    cfg = PinnConfig(problem="sequential", weighting="id", epochs=15, collocation=40, width=8,
+                     depth=2, log_every=5, alpha=1.0)
+    result = train_run(cfg, tmp_path, progress=False, plot=False)
+    phases = result["phases"]
+    assert [p["epoch"] for p in phases] == [5, 10, 15]
+    assert [p["active"] for p in phases] == [["data"], ["data", "grad"],
+                                             ["data", "grad", "lap"]]
+    first = phases[0]
+    assert first["spread/grad"] < first["spread/data"] < 1e3 * first["spread/data"] \
+        < first["spread/lap"]
+    assert result["weights"]["grad"] > 1.0 > result["weights"]["lap"]
+    assert result["weights"]["data"] == 1.0

@@ -29,6 +29,7 @@ from adjointsim.files import pyplot, save_figure, write_json, write_text
 from adjointsim.runner import Study, register_study
 
 from ..burgers_pinn import BOOK_DP, NU, BurgersPinnConfig, pbdl_data, run_dp, train_pinn
+from ..threads import use_threads
 
 #: a PINN small enough for a smoke test of the whole pipeline
 _TINY_PINN = {"width": 8, "depth": 2, "collocation": 64, "boundary_points": 8, "epochs": 20,
@@ -67,7 +68,7 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     and curves."""
     from adjointsim.fit_run import PBDL_T_OBS_STEP
 
-    torch.set_num_threads(1)
+    use_threads(1)
     if cell["solver"] == "dp":
         d = run_dp(cell["maxiter"])
         r = d["result"]
@@ -187,7 +188,7 @@ def nu_run_cell(cell: dict, run_dir: Path) -> dict:
     from adjointsim.fit import fit
     from adjointsim.fit_run import demo_problem, make_scene
 
-    torch.set_num_threads(1)
+    use_threads(1)
     prob = demo_problem("burgers-nu", cell["noise"], cell["seed"])
     scene = make_scene(prob["scene"], prob["config"])
     if cell["solver"] == "dp":

@@ -14,14 +14,13 @@ import math
 from pathlib import Path
 from statistics import median
 
-import torch
-
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
 
 from ..hig_problems import OPTIMIZERS, PROBLEMS, HigConfig, loss_at, plot_test_losses
 from ..hig_problems import train_run as _train_run
+from ..threads import use_threads
 
 #: per size: problems, seeds, time budget per problem (s), wall-clock marks of the table (s)
 SIZES = {
@@ -54,7 +53,7 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
-    torch.set_num_threads(1)
+    use_threads(1)
     cfg = HigConfig(problem=cell["problem"], optimizer=cell["optimizer"], seed=cell["seed"],
                     budget=cell["budget"], size=cell["data"])
     result = _train_run(cfg, Path(run_dir), resume=True, progress=False, plot=False)

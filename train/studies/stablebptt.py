@@ -15,7 +15,13 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
   final test loss over the untrained controller's (c = 0);
 * ``full``: the paper's settings (Adam 1e-3, 256 + 256 initial states, batch 8), every level,
   modes R/M/S/C, clipping none/value/norm, 3 seeds; epochs per task sized to about an hour
-  per task on 2 cores (the paper runs 1000).
+  per task on 2 cores (the paper runs 1000);
+* ``paper``: the paper's budget at the hardest cart-pole level (4 poles): 1000 epochs of the
+  paper's settings, modes R, M and C and R with norm clipping, 3 seeds.
+
+Cells that differ only in the seed and the clipping train together as one ensemble
+(:func:`adjointsim.train.ensemble.train_ensemble`): one task of the runner per ensemble, each
+member in its own run directory, equal to its separate run.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ from ..control import (
     initial_states,
     train_controller,
 )
+from ..ensemble import train_ensemble
 from ..unroll import CLIPS, FLOWS
 
 _MODES = ("R", "M", "S", "C")
@@ -57,6 +64,9 @@ SIZES = {
     "full": {"tasks": "all", "modes": _MODES, "clips": CLIPS, "seeds": 3,
              "train": 256, "test": 256, "batch": 8,
              "epochs": {"cartpole": 16, "guidance": 16, "quantum": 5}},
+    "paper": {"tasks": {"cartpole": (4,)}, "modes": ("R", "M", "C"), "clips": ("none",),
+              "extra": (("R", "norm"),), "seeds": 3, "train": 256, "test": 256, "batch": 8,
+              "epochs": {"cartpole": 1000}},
 }
 
 
@@ -75,31 +85,55 @@ def cells(size: str, seeds: int | None) -> list[dict]:
     out = []
     for task in TASKS:
         for level in _levels(s["tasks"], task):
-            for mode in s["modes"]:
-                for clip in s["clips"]:
-                    for seed in range(seeds or s["seeds"]):
-                        out.append({
-                            "id": f"{task}-{level}-{mode}-{clip}-s{seed}",
-                            "task": task, "level": level, "mode": mode, "clip": clip,
-                            "seed": seed, "epochs": s["epochs"][task], "train": s["train"],
-                            "test": s["test"], "batch": s["batch"],
-                        })
+            variants = [(m, c) for m in s["modes"] for c in s["clips"]] + list(s.get("extra", ()))
+            for mode, clip in variants:
+                for seed in range(seeds or s["seeds"]):
+                    out.append({
+                        "id": f"{task}-{level}-{mode}-{clip}-s{seed}",
+                        "task": task, "level": level, "mode": mode, "clip": clip,
+                        "seed": seed, "epochs": s["epochs"][task], "train": s["train"],
+                        "test": s["test"], "batch": s["batch"],
+                    })
     # level by level across tasks (stable: task order kept within a level)
     out.sort(key=lambda c: _levels(s["tasks"], c["task"]).index(c["level"]))
     return out
 
 
-def run_cell(cell: dict, run_dir: Path) -> dict:
-    """Train (or resume, or reuse) the cell's controller in ``run_dir``; returns its row."""
-    knob = TASKS[cell["task"]].knob
+def _config(cell: dict, run_dir: Path) -> ControlConfig:
     cfg = ControlConfig(
         task=cell["task"], mode=cell["mode"], clip=cell["clip"], seed=cell["seed"],
         epochs=cell["epochs"], train=cell["train"], test=cell["test"], batch=cell["batch"],
         out=str(run_dir), dtype="float32", threads=1,
     )
-    setattr(cfg, knob, cell["level"])
+    setattr(cfg, TASKS[cell["task"]].knob, cell["level"])
     cfg.validate()
-    result = train_controller(cfg, resume=True, progress=False)
+    return cfg
+
+
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    """Train (or resume, or reuse) the cell's controller in ``run_dir``; returns its row."""
+    cfg = _config(cell, run_dir)
+    return _row(cell, cfg, train_controller(cfg, resume=True, progress=False), run_dir)
+
+
+def pack(cells: list[dict]) -> list[list[dict]]:
+    """Ensembles: the cells that differ only in the seed and the clipping."""
+    groups: dict[tuple, list[dict]] = {}
+    for c in cells:
+        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", "seed", "clip"))
+        groups.setdefault(key, []).append(c)
+    return list(groups.values())
+
+
+def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
+    """Train (or resume, or reuse) the cells' controllers as one ensemble; returns their
+    rows."""
+    cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
+    results = train_ensemble(cfgs, resume=True, progress=False)
+    return [_row(*args) for args in zip(cells, cfgs, results, run_dirs)]
+
+
+def _row(cell: dict, cfg: ControlConfig, result: dict, run_dir: Path) -> dict:
     history = read_history(Path(run_dir) / "history.csv")
     # the untrained controller outputs c = 0 (zero last layer): the uncontrolled loss
     task = get_task(cfg.task, cfg.level)
@@ -245,4 +279,6 @@ register_study(Study(
     cells=cells,
     run_cell=run_cell,
     report=report,
+    pack=pack,
+    run_group=run_group,
 ))

@@ -1,9 +1,12 @@
 """The ``weighting`` study: every loss-weighting scheme of
 :data:`adjointsim.train.weighting.SCHEMES` on the PINN problems of :mod:`adjointsim.train.pinn`
+and on a differentiable-physics loss, the guidance task of :mod:`adjointsim.train.control`
 (``adjointsim study weighting --quick``).
 
-A cell is one problem × scheme × seed (× wavenumber k for Poisson), one
-:func:`adjointsim.train.pinn.train_run` in its own directory (resumed from its checkpoint when
+A cell is one problem × scheme × seed (× wavenumber k for Poisson): one
+:func:`adjointsim.train.pinn.train_run` or, for ``guidance``, one
+:func:`adjointsim.train.control.train_controller` (gradient flow R, r_c = 1, its terms
+``tracking`` and ``control``), in its own directory (resumed from its checkpoint when
 interrupted). ``epsilon-optimal`` (analytic weights) and ``ntk`` (per-sample residuals) exist
 for Poisson only, so the other problems' cells skip them.
 
@@ -13,16 +16,20 @@ Each row holds ``problem``, ``weighting``, ``seed``, ``epochs``, ``k`` (Poisson 
   error of u on the 100 × 100 grid; for Sobolev the relative L2 error of f on the 100 × 100
   grid; for ks-inverse the relative error of the learned coefficients,
   ‖(α, β) − (1, 1)‖ / ‖(1, 1)‖ (the relative L2 error of u over the trajectory is kept as
-  ``u_rel_l2``); null when the run diverged;
+  ``u_rel_l2``, the data loss at the end of each phase as ``data_by_phase``); for guidance the
+  final test tracking loss, the mean over steps of mean_e |x_e|² on the test states (the
+  whole test loss and its control term are kept as ``test_loss`` and ``control``); null when
+  the run diverged;
 * ``wall_s``: the wall-clock seconds of the cell's last attempt (training, evaluation and its
   plots; a resumed cell counts only the part it ran), and ``train_s``, the training time over
   every attempt;
 * ``diverged``.
 
-The report writes ``table.md`` (median over seeds [min, max] per problem/k and scheme, the
-best median per column in bold, and per column the schemes whose median is below
-inverse-Dirichlet's) and ``weighting.png`` (the error against k per scheme; the other problems
-in a second panel).
+The report writes ``table.md``, one table per problem (median over seeds [min, max] per
+scheme, and per k for Poisson; the best median per column in bold, and per column the schemes
+whose median is below inverse-Dirichlet's), and one plot per problem: ``weighting.png``
+(Poisson: the error against k per scheme) and ``weighting-<problem>.png`` (each seed's error
+per scheme).
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from statistics import median
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
+from ..control import ControlConfig, train_controller
 from ..pinn import EPOCHS, NEEDS_POISSON, PinnConfig, train_run
 from ..weighting import RULES
 from .pinn import median_range, rel_l2_of
@@ -43,23 +51,35 @@ from .pinn import median_range, rel_l2_of
 REDUCED = 3000
 TINY_NET = {"width": 8, "depth": 2, "collocation": 64, "edge_points": 8, "log_every": 5,
             "plot": False}
-#: per size: Poisson's epochs per k, the other problems' epochs, schemes, seeds, overrides of
-#: the authors' network and point sets
+#: per size: Poisson's epochs per k, the other problems' epochs, schemes, seeds (Poisson's
+#: and the other problems'), overrides of the authors' network and point sets, and the
+#: guidance task's training and test initial states
 SIZES: dict[str, dict] = {
-    "tiny": {"poisson": {1: 6}, "others": {}, "schemes": ("uniform", "inverse-dirichlet"),
-             "seeds": 1, "net": TINY_NET},
+    "tiny": {"poisson": {1: 6}, "others": {"sobolev": 3, "ks-inverse": 3, "guidance": 1},
+             "schemes": ("uniform", "inverse-dirichlet"), "seeds": (1, 1), "net": TINY_NET,
+             "control": {"train": 8, "test": 8}},
     # k = 1, 3, 6 rather than 1..6: a cell took 40-58 s (median 43 s, ntk the slowest) on
     # one core of a shared 2-core machine, 25 minutes for the 33 cells; every scheme at
-    # every k would take about 50
-    "quick": {"poisson": {1: REDUCED, 3: REDUCED, 6: REDUCED}, "others": {},
-              "schemes": RULES, "seeds": 1, "net": {}},
+    # every k would take about 50. The other problems with reduced schedules (Sobolev 100
+    # epochs, ks-inverse 200 per phase, guidance 20 epochs of 64 initial states), so that
+    # their 3 seeds take about half an hour
+    "quick": {"poisson": {1: REDUCED, 3: REDUCED, 6: REDUCED},
+              "others": {"sobolev": 100, "ks-inverse": 600, "guidance": 20},
+              "schemes": RULES, "seeds": (1, 3), "net": {},
+              "control": {"train": 64, "test": 64}},
     "full": {"poisson": {**{k: REDUCED for k in range(1, 6)}, 6: EPOCHS["poisson"]},
-             "others": {"sobolev": EPOCHS["sobolev"], "ks-inverse": EPOCHS["ks-inverse"]},
-             "schemes": RULES, "seeds": 3, "net": {}},
+             "others": {"sobolev": EPOCHS["sobolev"], "ks-inverse": EPOCHS["ks-inverse"],
+                        "guidance": 100},
+             "schemes": RULES, "seeds": (3, 3), "net": {},
+             "control": {"train": 256, "test": 256}},
 }
 METRICS = {"poisson": "relative L2 of u on the 100 x 100 grid",
            "sobolev": "relative L2 of f on the 100 x 100 grid",
-           "ks-inverse": "relative error of (alpha, beta)"}
+           "ks-inverse": "relative error of (alpha, beta)",
+           "guidance": "final test tracking loss"}
+TITLES = {"poisson": "Poisson PINN", "sobolev": "Sobolev training",
+          "ks-inverse": "KS inverse problem (sequential)",
+          "guidance": "guidance controller (differentiable physics)"}
 #: what every row holds besides its cell's keys
 ROW_KEYS = {"rel_l2": float, "metric": str, "diverged": bool, "wall_s": float,
             "train_s": float}
@@ -69,23 +89,34 @@ def cells(size: str, seeds: int | None) -> list[dict]:
     """Seed-major, then Poisson by k, then the other problems: an interrupted study has every
     scheme at the first k's and seeds."""
     spec = SIZES[size]
-    n = spec["seeds"] if seeds is None else seeds
+    n_poisson, n_others = spec["seeds"] if seeds is None else (seeds, seeds)
     out = []
-    for s in range(n):
-        for k, epochs in spec["poisson"].items():
+    for s in range(max(n_poisson, n_others)):
+        for k, epochs in spec["poisson"].items() if s < n_poisson else ():
             out += [{"id": f"poisson-k{k}-{w}-s{s}", "problem": "poisson", "k": k,
                      "weighting": w, "seed": s, "epochs": epochs, **spec["net"]}
                     for w in spec["schemes"]]
-        for problem, epochs in spec["others"].items():
+        for problem, epochs in spec["others"].items() if s < n_others else ():
+            extra = spec["control"] if problem == "guidance" else spec["net"]
             out += [{"id": f"{problem}-{w}-s{s}", "problem": problem, "weighting": w,
-                     "seed": s, "epochs": epochs, **spec["net"]}
+                     "seed": s, "epochs": epochs, **extra}
                     for w in spec["schemes"] if w not in NEEDS_POISSON]
     return out
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
     start = time.perf_counter()
-    keys = {k: v for k, v in cell.items() if k not in ("id", "plot")}
+    keys = {k: v for k, v in cell.items() if k not in ("id", "plot", "problem")}
+    if cell["problem"] == "guidance":
+        cfg = ControlConfig(task="guidance", mode="R", out=str(run_dir), **keys)
+        result = train_controller(cfg, resume=True, progress=False)
+        track = result["test_terms"]["tracking"]
+        return {"rel_l2": track if math.isfinite(track) else None,
+                "metric": METRICS["guidance"], "diverged": not math.isfinite(track),
+                "train_s": result["seconds"], "test_loss": result["test_loss"],
+                "control": result["test_terms"]["control"], "weights": result["weights"],
+                "wall_s": time.perf_counter() - start}
+    keys["problem"] = cell["problem"]
     result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
                        plot=cell.get("plot", True))
     row = {"rel_l2": result["rel_l2"], "metric": METRICS[cell["problem"]],
@@ -94,7 +125,8 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
         c = result["coefficients"]
         err = math.hypot(c["alpha"] - 1.0, c["beta"] - 1.0) / math.sqrt(2.0)
         row.update(rel_l2=err if math.isfinite(err) else None, u_rel_l2=result["rel_l2"],
-                   alpha=c["alpha"], beta=c["beta"])
+                   alpha=c["alpha"], beta=c["beta"],
+                   data_by_phase=[p["data"] for p in result["phases"]])
     return {**row, "wall_s": time.perf_counter() - start}
 
 
@@ -102,10 +134,13 @@ def _column(row: dict) -> str:
     return f"k={row['k']}" if row["problem"] == "poisson" else row["problem"]
 
 
+def _problems(rows: list[dict]) -> list[str]:
+    return [p for p in METRICS if any(r["problem"] == p for r in rows)]
+
+
 def _columns(rows: list[dict]) -> list[str]:
     ks = sorted({r["k"] for r in rows if r["problem"] == "poisson"})
-    others = [p for p in METRICS if p != "poisson" and any(r["problem"] == p for r in rows)]
-    return [f"k={k}" for k in ks] + others
+    return [f"k={k}" for k in ks] + [p for p in _problems(rows) if p != "poisson"]
 
 
 def _schemes(rows: list[dict]) -> list[str]:
@@ -122,10 +157,9 @@ def _medians(rows: list[dict]) -> dict[tuple[str, str], float]:
             for key, errs in groups.items()}
 
 
-def table(rows: list[dict]) -> str:
-    """A Markdown table: median over seeds [min, max] per column (Poisson's k, then the other
-    problems) and scheme, the best median per column in bold; then per column the schemes
-    below inverse-Dirichlet."""
+def _problem_table(rows: list[dict]) -> list[str]:
+    """One problem's rows as a Markdown table (median over seeds [min, max] per column and
+    scheme, the best median per column in bold) and its notes."""
     cols, schemes, med = _columns(rows), _schemes(rows), _medians(rows)
     best = {c: min((v for (cc, _), v in med.items() if cc == c), default=math.inf)
             for c in cols}
@@ -141,10 +175,8 @@ def table(rows: list[dict]) -> str:
     seeds = len({r["seed"] for r in rows})
     epochs = {c: sorted({r["epochs"] for r in rows if _column(r) == c}) for c in cols}
     notes = [f"Median over {seeds} seed{'s' * (seeds > 1)}"
-             + (" [min, max]" if seeds > 1 else "") + "; epochs per column: "
-             + ", ".join(f"{c}: {'/'.join(map(str, e))}" for c, e in epochs.items())
-             + ". Measures: " + "; ".join(f"{p}: {m}" for p, m in METRICS.items()
-                                          if any(r["problem"] == p for r in rows)) + "."]
+             + (" [min, max]" if seeds > 1 else "") + "; epochs: "
+             + ", ".join(f"{c}: {'/'.join(map(str, e))}" for c, e in epochs.items()) + "."]
     for c in cols:
         ref = med.get((c, "inverse-dirichlet"))
         if ref is None:
@@ -152,7 +184,18 @@ def table(rows: list[dict]) -> str:
         below = [w for w in schemes if med.get((c, w), math.inf) < ref]
         notes.append(f"- {c}: below inverse-dirichlet ({ref:.2e}): "
                      + (", ".join(f"{w} ({med[(c, w)]:.2e})" for w in below) or "none"))
-    return "\n".join(lines + [""] + notes)
+    return lines + [""] + notes
+
+
+def table(rows: list[dict]) -> str:
+    """One Markdown table per problem, under a heading naming its accuracy measure: the
+    median over seeds [min, max] per scheme (and per k for Poisson), the best median per
+    column in bold; then per column the schemes below inverse-Dirichlet."""
+    parts = []
+    for p in _problems(rows):
+        parts += [f"## {TITLES[p]}: {METRICS[p]}", "",
+                  *_problem_table([r for r in rows if r["problem"] == p]), ""]
+    return "\n".join(parts).rstrip()
 
 
 #: one colour and marker per scheme, fixed so that plots of different runs compare
@@ -160,54 +203,179 @@ STYLE = {w: (f"C{i}" if i < 10 else "black", "os^vD<>ph*X"[i % 11])
          for i, w in enumerate(RULES)}
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot_poisson(rows: list[dict], path: Path) -> None:
     """Poisson's error against k, one line (median over seeds) and one marker per run per
-    scheme, log y; the other problems, if any, in a second panel (one column each)."""
-    others = [c for c in _columns(rows) if not c.startswith("k=")]
-    fig, axes = pyplot().subplots(1, 1 + bool(others), figsize=(6 + 4 * bool(others), 4.5),
-                                  squeeze=False)
+    scheme, log y."""
+    fig, ax = pyplot().subplots(figsize=(6, 4.5))
     med = _medians(rows)
-    ax = axes[0][0]
-    poisson = [r for r in rows if r["problem"] == "poisson"]
-    ks = sorted({r["k"] for r in poisson})
-    for w in _schemes(poisson):
+    ks = sorted({r["k"] for r in rows})
+    for w in _schemes(rows):
         color, marker = STYLE[w]
-        mine = [r for r in poisson if r["weighting"] == w and math.isfinite(rel_l2_of(r))]
+        mine = [r for r in rows if r["weighting"] == w and math.isfinite(rel_l2_of(r))]
         ax.scatter([r["k"] for r in mine], [r["rel_l2"] for r in mine], color=color, s=10,
                    alpha=0.5, marker=marker)
         line = [(k, med[(f"k={k}", w)]) for k in ks
                 if math.isfinite(med.get((f"k={k}", w), math.inf))]
         if line:
             ax.plot(*zip(*line), color=color, marker=marker, ms=4, label=w)
-    if poisson:
-        ax.set(yscale="log", xticks=ks, xlabel="wavenumber k (ω = kπ)",
-               ylabel="relative L2 error of u", title="Poisson PINN")
-        ax.legend(fontsize=7, ncol=2)
-    if others:
-        ax = axes[0][1]
-        schemes = _schemes(rows)
-        for j, w in enumerate(schemes):
-            color, marker = STYLE[w]
-            # side by side within a problem's column, so that equal errors stay visible
-            shift = 0.6 * (j / max(len(schemes) - 1, 1) - 0.5)
-            pts = [(i + shift, rel_l2_of(r)) for i, c in enumerate(others) for r in rows
-                   if _column(r) == c and r["weighting"] == w and math.isfinite(rel_l2_of(r))]
-            if pts:
-                ax.scatter(*zip(*pts), color=color, marker=marker, s=16, label=w)
-        ax.set(yscale="log", xticks=range(len(others)), xlim=(-0.5, len(others) - 0.5),
-               xticklabels=[f"{c}\n({METRICS[c]})" for c in others], xlabel="problem",
-               ylabel="error (see tick label)", title="Sobolev and KS inverse")
-        ax.tick_params(axis="x", labelsize=7)
-        ax.legend(fontsize=7, ncol=2)
+    ax.set(yscale="log", xticks=ks, xlabel="wavenumber k (ω = kπ)",
+           ylabel=METRICS["poisson"], title=TITLES["poisson"])
+    ax.legend(fontsize=7, ncol=2)
+    save_figure(fig, path, dpi=120)
+
+
+def plot_problem(rows: list[dict], path: Path) -> None:
+    """One problem's error per scheme: each seed a marker, the median a bar, log y."""
+    problem = rows[0]["problem"]
+    schemes = _schemes(rows)
+    fig, ax = pyplot().subplots(figsize=(1.0 + 0.6 * len(schemes), 4.0))
+    med = _medians(rows)
+    for i, w in enumerate(schemes):
+        color, marker = STYLE[w]
+        errs = [rel_l2_of(r) for r in rows if r["weighting"] == w]
+        finite = [e for e in errs if math.isfinite(e)]
+        ax.scatter([i] * len(finite), finite, color=color, marker=marker, s=18, zorder=3)
+        if math.isfinite(med[(problem, w)]):
+            ax.hlines(med[(problem, w)], i - 0.3, i + 0.3, color=color, lw=2)
+    seeds = len({r["seed"] for r in rows})
+    ax.set(yscale="log", xticks=range(len(schemes)), xlim=(-0.5, len(schemes) - 0.5),
+           ylabel=METRICS[problem],
+           title=f"{TITLES[problem]}, {seeds} seed{'s' * (seeds > 1)} (bar: median)")
+    ax.set_xticklabels(schemes, rotation=45, ha="right", fontsize=8)
+    ax.title.set_fontsize(9)
     save_figure(fig, path, dpi=120)
 
 
 def report(rows: list[dict], out: Path) -> str:
     text = table(rows)
     write_text(Path(out) / "table.md", text + "\n")
-    plot(rows, Path(out) / "weighting.png")
+    for p in _problems(rows):
+        mine = [r for r in rows if r["problem"] == p]
+        if p == "poisson":
+            plot_poisson(mine, Path(out) / "weighting.png")
+        else:
+            plot_problem(mine, Path(out) / f"weighting-{p}.png")
     return text
 
 
 register_study(Study(name="weighting", sizes=tuple(SIZES), cells=cells, run_cell=run_cell,
                      report=report, row_keys=ROW_KEYS))
+
+
+# ----------------------------------------------------------------------------- forgetting
+#: the ``weighting-forgetting`` study's variants of training: ID as the note gives it (α = 0.5,
+#: the problem's reference), without the moving average (α = 1), and with the largest spread
+#: as the reference (the same ratios λ_k s_k, a different overall scale); uniform
+VARIANTS = {"uniform": {"weighting": "uniform"},
+            "id": {"weighting": "inverse-dirichlet"},
+            "id-alpha1": {"weighting": "inverse-dirichlet", "alpha": 1.0},
+            "id-max": {"weighting": "inverse-dirichlet", "reference": "max"}}
+#: per size: each sequential problem's epochs (three equal phases) and overrides, seeds
+FORGETTING: dict[str, dict] = {
+    "tiny": {"problems": {"sequential": 6, "ks-inverse": 6}, "seeds": 1, "net": TINY_NET},
+    # 500 epochs per phase, 1000 points for the synthetic problem: about 1 CPU-minute a cell
+    "quick": {"problems": {"sequential": 1500, "ks-inverse": 1500}, "seeds": 1,
+              "net": {"collocation": 1000}},
+    "full": {"problems": {"sequential": EPOCHS["sequential"],
+                          "ks-inverse": EPOCHS["ks-inverse"]}, "seeds": 3, "net": {}},
+}
+
+
+def forgetting_cells(size: str, seeds: int | None) -> list[dict]:
+    spec = FORGETTING[size]
+    n = spec["seeds"] if seeds is None else seeds
+    return [{"id": f"{problem}-{v}-s{s}", "problem": problem, "variant": v, "seed": s,
+             "epochs": epochs, **VARIANTS[v], **spec["net"]}
+            for s in range(n) for problem, epochs in spec["problems"].items()
+            for v in VARIANTS]
+
+
+def forgetting_cell(cell: dict, run_dir: Path) -> dict:
+    start = time.perf_counter()
+    keys = {k: v for k, v in cell.items() if k not in ("id", "plot", "variant")}
+    result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
+                       plot=cell.get("plot", True))
+    phases = result["phases"]
+    terms = [t for t in phases[-1]["active"]]
+    row = {"rel_l2": result["rel_l2"], "diverged": result["diverged"],
+           "data_by_phase": [p["data"] for p in phases],
+           "spreads_by_phase": [{t: p[f"spread/{t}"] for t in terms} for p in phases],
+           "weights": result["weights"], "train_s": result["seconds"]}
+    if cell["problem"] == "ks-inverse":
+        c = result["coefficients"]
+        row["coef_err"] = math.hypot(c["alpha"] - 1.0, c["beta"] - 1.0) / math.sqrt(2.0)
+    return {**row, "wall_s": time.perf_counter() - start}
+
+
+def forgetting_table(rows: list[dict]) -> str:
+    """Per problem and variant (median over seeds): the data loss at the end of each phase,
+    its growth over phases 2 and 3, and the spread of each joining term over data's when it
+    joins (at the end of the phase before)."""
+    lines = []
+    for problem in dict.fromkeys(r["problem"] for r in rows):
+        mine = [r for r in rows if r["problem"] == problem and not r["diverged"]]
+        terms = list(mine[0]["spreads_by_phase"][0]) if mine else []
+        head = ["variant", "data after 1", "after 2", "after 3", "2 / 1", "3 / 2",
+                *(f"s_{t} / s_data at join" for t in terms[1:]), "rel. L2 of u"]
+        if problem == "ks-inverse":
+            head.append("coefficient error")
+        lines += [f"## {problem}", "", "| " + " | ".join(head) + " |",
+                  "|---" * len(head) + "|"]
+        for v in VARIANTS:
+            group = [r for r in mine if r["variant"] == v]
+            if not group:
+                continue
+
+            def med(f, group=group):
+                return f"{median(f(r) for r in group):.2e}"
+
+            d = [lambda r, i=i: r["data_by_phase"][i] for i in range(3)]
+            cols = [med(d[0]), med(d[1]), med(d[2]),
+                    med(lambda r: r["data_by_phase"][1] / r["data_by_phase"][0]),
+                    med(lambda r: r["data_by_phase"][2] / r["data_by_phase"][1])]
+            cols += [med(lambda r, i=i, t=t: r["spreads_by_phase"][i - 1][t]
+                         / r["spreads_by_phase"][i - 1]["data"])
+                     for i, t in enumerate(terms[1:], start=1)]
+            cols.append(med(lambda r: r["rel_l2"]))
+            if problem == "ks-inverse":
+                cols.append(med(lambda r: r["coef_err"]))
+            lines.append(f"| {v} | " + " | ".join(cols) + " |")
+        seeds = len({r["seed"] for r in mine})
+        epochs = sorted({r["epochs"] for r in mine})
+        lines += ["", f"Median over {seeds} seed{'s' * (seeds > 1)}; "
+                  f"{'/'.join(map(str, epochs))} epochs in three equal phases.", ""]
+    return "\n".join(lines).rstrip()
+
+
+def forgetting_plot(rows: list[dict], path: Path) -> None:
+    """The data loss at the end of each phase per variant (each seed a line), one panel per
+    problem, log y."""
+    problems = list(dict.fromkeys(r["problem"] for r in rows))
+    fig, axes = pyplot().subplots(1, len(problems), figsize=(5 * len(problems), 4),
+                                  squeeze=False)
+    for ax, problem in zip(axes[0], problems):
+        for i, v in enumerate(VARIANTS):
+            group = [r for r in rows if r["problem"] == problem and r["variant"] == v
+                     and not r["diverged"]]
+            for j, r in enumerate(group):
+                ax.plot(range(1, len(r["data_by_phase"]) + 1), r["data_by_phase"],
+                        color=f"C{i}", marker="o", ms=4, label=v if j == 0 else None)
+        terms = ("data", "+ grad (×1e-3)", "+ lap (×1e3)") if problem == "sequential" \
+            else ("data", "+ periodic", "+ residual")
+        ax.set(yscale="log", xticks=(1, 2, 3), xticklabels=terms, ylabel="data loss",
+               title=f"{problem}: the data loss at the end of each phase")
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=8)
+    save_figure(fig, path, dpi=120)
+
+
+def forgetting_report(rows: list[dict], out: Path) -> str:
+    text = forgetting_table(rows)
+    write_text(Path(out) / "table.md", text + "\n")
+    forgetting_plot(rows, Path(out) / "forgetting.png")
+    return text
+
+
+register_study(Study(name="weighting-forgetting", sizes=tuple(FORGETTING),
+                     cells=forgetting_cells, run_cell=forgetting_cell,
+                     report=forgetting_report))

@@ -1,0 +1,102 @@
+"""Ensembles: K members trained in one process equal their K separate runs."""
+
+import pytest
+import torch
+
+from adjointsim.errors import UserError
+from adjointsim.run import read_history
+from adjointsim.train import control
+from adjointsim.train.checkpoint import load_checkpoint
+from adjointsim.train.ensemble import Stack, train_ensemble
+
+CLIPS = ("none", "norm", "value", "none")
+LRS = (1e-3, 1e-3, 1e-3, 3e-3)
+
+
+def _cfg(tmp_path, where, seed, dtype, mode, epochs=1, train=100, batch=2, **kw):
+    """50 updates in one epoch: few evaluations and files, so the test stays fast."""
+    kw = {"clip": CLIPS[seed], "lr": LRS[seed]} | kw
+    return control.ControlConfig(task="cartpole", poles=2, mode=mode, seed=seed, epochs=epochs,
+                                 train=train, test=4, batch=batch, dtype=dtype,
+                                 out=str(tmp_path / where / f"s{seed}"), **kw)
+
+
+def _max_rel(a: dict, b: dict) -> float:
+    return max(float((a[n] - b[n]).abs().max() / b[n].abs().max()) for n in b)
+
+
+@pytest.mark.parametrize(("dtype", "mode", "tol"), [
+    ("float64", "C", 1e-10),
+    pytest.param("float32", "R", 1e-4, marks=pytest.mark.slow),
+])
+def test_members_equal_their_separate_runs(tmp_path, dtype, mode, tol):
+    ens = train_ensemble([_cfg(tmp_path, "ens", s, dtype, mode) for s in range(4)],
+                         progress=False)
+    for s in range(4):
+        sep = control.train_controller(_cfg(tmp_path, "sep", s, dtype, mode), progress=False)
+        a = load_checkpoint(tmp_path / "ens" / f"s{s}" / "checkpoint.pt", ("net",))
+        b = load_checkpoint(tmp_path / "sep" / f"s{s}" / "checkpoint.pt", ("net",))
+        assert _max_rel(a["net"], b["net"]) <= tol
+        moments = {f"{i}{k}": v[k] for i, v in b["optimizer"]["state"].items()
+                   for k in ("exp_avg", "exp_avg_sq")}
+        assert _max_rel({f"{i}{k}": v[k] for i, v in a["optimizer"]["state"].items()
+                         for k in ("exp_avg", "exp_avg_sq")}, moments) <= 10 * tol
+        assert a["optimizer"]["state"][0]["step"] == b["optimizer"]["state"][0]["step"] == 50
+        assert set(ens[s]) == set(sep) and ens[s]["clip"] == CLIPS[s]
+        assert ens[s]["test_loss"] == pytest.approx(sep["test_loss"], rel=tol)
+        (x,), (y,) = (read_history(tmp_path / w / f"s{s}" / "history.csv") for w in ("ens", "sep"))
+        for key in ("batch_loss", "train_loss", "update_norm", "cos_mr"):
+            assert x[key] == pytest.approx(y[key], rel=100 * tol, nan_ok=True)
+        for name in ("rollout.png", "test_loss.png", "result.json", "config.json"):
+            assert (tmp_path / "ens" / f"s{s}" / name).exists()
+    # the members really differ (seed, clip, learning rate), so the check above can fail
+    nets = [load_checkpoint(tmp_path / "ens" / f"s{s}" / "checkpoint.pt", ("net",))["net"]
+            for s in range(4)]
+    assert all(_max_rel(nets[0], n) > 1e-3 for n in nets[1:])
+
+
+def test_a_member_resumes_as_a_separate_run_and_an_ensemble_resumes(tmp_path):
+    kw = {"train": 8, "batch": 4, "clip": "none", "lr": 1e-3}
+    train_ensemble([_cfg(tmp_path, "ens", s, "float64", "M", epochs=1, **kw) for s in (0, 1)],
+                   progress=False)
+    # member 0 continues alone, member 1 together with a new member 2
+    control.train_controller(_cfg(tmp_path, "ens", 0, "float64", "M", epochs=2, **kw),
+                             resume=True, progress=False)
+    train_ensemble([_cfg(tmp_path, "ens", s, "float64", "M", epochs=2, **kw) for s in (1, 2)],
+                   resume=True, progress=False)
+    for s in (0, 1, 2):
+        control.train_controller(_cfg(tmp_path, "sep", s, "float64", "M", epochs=2, **kw),
+                                 progress=False)
+        a, b = (load_checkpoint(tmp_path / w / f"s{s}" / "checkpoint.pt", ("net",))
+                for w in ("ens", "sep"))
+        assert _max_rel(a["net"], b["net"]) <= 1e-10
+        assert len(a["history"]) == 2
+
+
+def test_adam_over_stacked_members_is_one_adam_per_member():
+    torch.manual_seed(0)
+    nets = [torch.nn.Linear(3, 2).double() for _ in range(3)]
+    opts = [torch.optim.Adam(n.parameters(), lr=lr) for n, lr in zip(nets, (1e-2, 1e-3, 1e-2))]
+    stack = Stack(nets, (1e-2, 1e-3, 1e-2))
+    for step in range(6):
+        active = [k for k in range(3) if (k, step % 3) != (1, 2)]  # member 1 skips some steps
+        grads = [[torch.randn_like(p) for p in n.parameters()] for n in nets]
+        for k in active:
+            for p, g in zip(nets[k].parameters(), grads[k]):
+                p.grad = g
+            opts[k].step()
+        stack.adam([torch.stack([grads[k][i] for k in active]) for i in range(2)], active)
+    for k, net in enumerate(nets):
+        for i, p in enumerate(net.parameters()):
+            torch.testing.assert_close(stack.tensors[i][k], p.detach(), rtol=1e-13, atol=0)
+    assert stack.steps == [6, 4, 6]
+
+
+def test_members_must_share_everything_but_seed_clip_and_lr(tmp_path):
+    cfgs = [_cfg(tmp_path, "a", 0, "float64", "R"), _cfg(tmp_path, "b", 1, "float64", "C")]
+    with pytest.raises(UserError, match="differs .* in mode"):
+        train_ensemble(cfgs, progress=False)
+    same = [_cfg(tmp_path, "a", 0, "float64", "R"), _cfg(tmp_path, "a", 1, "float64", "R")]
+    same[1].out = same[0].out
+    with pytest.raises(UserError, match="run directories of their own"):
+        train_ensemble(same, progress=False)

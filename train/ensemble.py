@@ -1,0 +1,442 @@
+"""Ensembles: K runs of one configuration that differ in the seed train in one process.
+
+Our networks are small, so an update costs per-operation overhead rather than arithmetic. An
+ensemble stacks its members' parameters (``torch.func.stack_module_state``), runs their
+networks as one vectorised call (``torch.func.vmap`` over ``functional_call``) and hands the
+solver every member's rows as one batch: one bridge call per step for the whole ensemble.
+
+Each member keeps what its separate run has: its initialisation (the net its seed builds), its
+initial states and data order (its seed's), and its own Adam state. Adam is elementwise, so one
+Adam over the stacked parameters is K Adams as long as every per-member quantity is computed per
+member: the step count (a member whose update is skipped does not advance), the learning rate,
+the clipping of the update and the update norm in the history. Each member's run therefore
+equals its separate run to float rounding, and its run directory holds exactly what a separate
+run writes (``config.json``, ``history.csv``, ``checkpoint.pt``, ``result.json``, plots): a
+member resumes, is evaluated and is tabulated as an ordinary run, alone or in an ensemble again.
+
+Members may differ in ``seed``, ``out``, ``clip`` and ``lr``. The stacking (:class:`Stack`,
+:class:`EnsembleNet`) serves any network; :func:`train_ensemble` trains controllers.
+
+An ensemble saves every member's checkpoint at the end of each epoch and on Ctrl-C between two
+updates. Should it die between two members' saves, the members resume from different points:
+each group of members at the same point then trains on as an ensemble of its own.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.func import functional_call, stack_module_state, vmap
+from tqdm.auto import tqdm
+
+from adjointsim.errors import UserError
+from adjointsim.files import uninterrupted, write_json
+from adjointsim.nets.mlp import MLP, Sin
+from adjointsim.run import read_result, write_history
+from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
+
+from . import control as ctl
+from .checkpoint import restore, save_checkpoint
+from .threads import use_threads
+from .unroll import GradientFlow, Update, clip_update
+
+#: config keys members of a controller ensemble may differ in
+CONTROL_FREE = ("seed", "out", "clip", "lr")
+_BLOW_UPS = (NonFiniteStateError, NonFiniteInputError, FloatingPointError)
+
+
+def check_members(cfgs: Sequence, free: Sequence[str]) -> None:
+    """Refuse an ensemble whose configs differ in more than ``free``, or share a run
+    directory."""
+    if not cfgs:
+        raise UserError("an ensemble needs at least one member")
+    kinds = {type(c) for c in cfgs}
+    if len(kinds) > 1:
+        raise UserError("an ensemble's members must be configs of one kind")
+    first = dataclasses.asdict(cfgs[0])
+    for cfg in cfgs[1:]:
+        differ = [k for k, v in dataclasses.asdict(cfg).items()
+                  if v != first[k] and k not in free]
+        if differ:
+            raise UserError(f"ensemble members may differ only in {', '.join(free)}; "
+                            f"{cfg.out} differs from {cfgs[0].out} in {', '.join(differ)}")
+    outs = [str(Path(c.out).resolve()) for c in cfgs]
+    if len(set(outs)) < len(outs):
+        raise UserError("ensemble members need run directories of their own (--out)")
+
+
+# ----------------------------------------------------------------------------- stacking
+class Stack:
+    """K networks of one architecture as stacked tensors (leading axis: the member), with
+    one Adam state per member (elementwise, as ``torch.optim.Adam`` on CPU computes it).
+    ``batched=False`` runs every network under ``vmap`` (see :func:`batched_layers`)."""
+
+    def __init__(self, nets: Sequence[nn.Module], lrs: Sequence[float],
+                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
+                 batched: bool = True):
+        params, _ = stack_module_state(list(nets))
+        self.names = list(params)
+        self.tensors = [params[n].detach() for n in self.names]
+        self.exp_avg = [torch.zeros_like(t) for t in self.tensors]
+        self.exp_avg_sq = [torch.zeros_like(t) for t in self.tensors]
+        self.steps = [0] * len(nets)
+        self.lrs = list(lrs)
+        self.betas, self.eps = betas, eps
+        self.template = copy.deepcopy(nets[0])
+        self.plan = batched_layers(self.template, self.names) if batched else None
+
+    @property
+    def members(self) -> int:
+        return len(self.steps)
+
+    def leaves(self, idx: Sequence[int] | None = None) -> list[torch.Tensor]:
+        """Fresh leaves of the members ``idx`` (all: no copy) for one update's tape."""
+        if idx is None or len(idx) == self.members:
+            return [t.detach().requires_grad_() for t in self.tensors]
+        sel = torch.tensor(list(idx))
+        return [t[sel].requires_grad_() for t in self.tensors]
+
+    def net(self, leaves: Sequence[torch.Tensor], rows: int) -> EnsembleNet:
+        return EnsembleNet(self.template, self.names, list(leaves), rows, self.plan)
+
+    def adam(self, grads: Sequence[torch.Tensor], idx: Sequence[int]) -> None:
+        """One Adam step of the members ``idx`` (the others keep weights and state);
+        ``grads`` holds the gradients of exactly those members, stacked."""
+        if not idx:
+            return
+        b1, b2 = self.betas
+        for k in idx:
+            self.steps[k] += 1
+        steps = [self.steps[k] for k in idx]
+        size = [self.lrs[k] / (1 - b1**s) for k, s in zip(idx, steps)]
+        root = [(1 - b2**s) ** 0.5 for s in steps]
+        every = len(idx) == self.members
+        sel = None if every else torch.tensor(list(idx))
+        for p, g, m, v in zip(self.tensors, grads, self.exp_avg, self.exp_avg_sq):
+            shape = (-1,) + (1,) * (p.ndim - 1)
+            neg = torch.tensor([-s for s in size], dtype=p.dtype).view(shape)
+            div = torch.tensor(root, dtype=p.dtype).view(shape)
+            mm, vv, pp = (m, v, p) if every else (m[sel], v[sel], p[sel])
+            mm.lerp_(g, 1 - b1)
+            vv.mul_(b2).addcmul_(g, g, value=1 - b2)
+            denom = (vv.sqrt() / div).add_(self.eps)
+            # addcdiv's own order: p + (value · m) / denom, with a value per member
+            pp.add_(neg * mm / denom)
+            if not every:
+                m[sel], v[sel], p[sel] = mm, vv, pp
+
+    def load(self, k: int, net: nn.Module, opt: torch.optim.Adam) -> None:
+        """Member ``k`` from its ordinary network and optimiser (a restored run)."""
+        params = dict(net.named_parameters())
+        state = opt.state
+        for i, name in enumerate(self.names):
+            p = params[name]
+            self.tensors[i][k] = p.detach()
+            if p in state:
+                self.exp_avg[i][k] = state[p]["exp_avg"]
+                self.exp_avg_sq[i][k] = state[p]["exp_avg_sq"]
+        steps = {int(s["step"]) for s in state.values()}
+        self.steps[k] = steps.pop() if steps else 0
+
+    def store(self, k: int, net: nn.Module, opt: torch.optim.Adam) -> None:
+        """Member ``k`` into its ordinary network and optimiser, as its separate run holds
+        them (for its checkpoint, plots and result)."""
+        params = dict(net.named_parameters())
+        with torch.no_grad():
+            for i, name in enumerate(self.names):
+                params[name].copy_(self.tensors[i][k])
+        if self.steps[k]:
+            for i, name in enumerate(self.names):
+                opt.state[params[name]] = {
+                    "step": torch.tensor(float(self.steps[k]), dtype=torch.get_default_dtype()),
+                    "exp_avg": self.exp_avg[i][k].clone(),
+                    "exp_avg_sq": self.exp_avg_sq[i][k].clone(),
+                }
+
+
+#: parameter-free layers that act elementwise, the same for every member
+_ELEMENTWISE = (nn.Tanh, nn.ReLU, nn.LeakyReLU, nn.GELU, nn.SiLU, nn.Sigmoid, Sin)
+
+
+def batched_layers(template: nn.Module, names: list[str]) -> list[tuple] | None:
+    """The template as a chain of batched layers (a linear layer becomes one batched matrix
+    product over the members), or None where it is not a plain chain of linear layers,
+    elementwise activations and flattening: those networks run under ``vmap``. For our small
+    MLPs the batched chain is faster, as it skips vmap's per-call overhead."""
+    index = {n: i for i, n in enumerate(names)}
+    plan: list[tuple] = []
+
+    def walk(module: nn.Module, prefix: str) -> bool:
+        if isinstance(module, nn.Sequential | MLP):
+            return all(walk(m, f"{prefix}{n}.") for n, m in module.named_children())
+        if isinstance(module, nn.Linear) and module.bias is not None:
+            plan.append(("linear", index[prefix + "weight"], index[prefix + "bias"]))
+            return True
+        if isinstance(module, nn.Flatten) and module.start_dim == 1 and module.end_dim == -1:
+            plan.append(("flatten",))
+            return True
+        if type(module) in _ELEMENTWISE:
+            plan.append(("act", module))
+            return True
+        return False
+
+    return plan if walk(template, "") else None
+
+
+class EnsembleNet(nn.Module):
+    """The members' networks as one module. Its input's rows come in blocks of members × rows
+    (member-major: member 0's ``rows`` rows, member 1's, ...); each member's network sees its
+    own rows, all in one vectorised call."""
+
+    def __init__(self, template: nn.Module, names: list[str], leaves: list[torch.Tensor],
+                 rows: int, plan: list[tuple] | None):
+        super().__init__()
+        object.__setattr__(self, "_template", template)  # not a submodule: its weights unused
+        self.names, self.leaves, self.rows, self.plan = names, leaves, rows, plan
+        self._call = vmap(self._one)
+
+    def _one(self, params: tuple[torch.Tensor, ...], x: torch.Tensor) -> torch.Tensor:
+        return functional_call(self._template, dict(zip(self.names, params)), (x,))
+
+    def _chain(self, x: torch.Tensor) -> torch.Tensor:
+        for op in self.plan:
+            if op[0] == "linear":
+                w, b = self.leaves[op[1]], self.leaves[op[2]]
+                x = torch.baddbmm(b.unsqueeze(1), x, w.transpose(1, 2))
+            elif op[0] == "flatten":
+                x = x.flatten(2)
+            else:
+                x = op[1](x)
+        return x
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        k, rest = len(self.leaves[0]), x.shape[1:]
+        blocks = x.shape[0] // (k * self.rows)
+        if blocks == 1:  # the common case: no transposes, fewer nodes on the tape
+            xs = x.reshape(k, self.rows, *rest)
+        else:
+            xs = x.reshape(blocks, k, self.rows, *rest).transpose(0, 1)
+            xs = xs.reshape(k, blocks * self.rows, *rest)
+        out = self._call(tuple(self.leaves), xs) if self.plan is None else self._chain(xs)
+        if blocks > 1:
+            out = out.reshape(k, blocks, self.rows, *out.shape[2:]).transpose(0, 1)
+        return out.reshape(x.shape[0], *out.shape[(3 if blocks > 1 else 2):])
+
+
+def member_rows(x: torch.Tensor, members: int, rows: int) -> list[torch.Tensor]:
+    """Each member's rows of a batch in blocks of members × rows (C's doubled batch: its R
+    rows, then its M rows, as in its separate run)."""
+    blocks = x.shape[0] // (members * rows)
+    if blocks == 1:
+        return list(x.split(rows))
+    xs = x.reshape(blocks, members, rows, *x.shape[1:])
+    return [xs[:, k].reshape(blocks * rows, *x.shape[1:]) for k in range(members)]
+
+
+# ----------------------------------------------------------------------------- controllers
+class _MemberLoss:
+    """A control task whose loss is one per member (a (K,) tensor): what
+    :func:`adjointsim.train.control.closed_loop` sums over steps."""
+
+    def __init__(self, task: ctl.Task, members: int, rows: int):
+        self.task, self.members, self.rows = task, members, rows
+        self.solver, self.steps = task.solver, task.steps
+
+    def control(self, out: torch.Tensor) -> torch.Tensor:
+        return self.task.control(out)
+
+    def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
+        xs, cs = member_rows(x, self.members, self.rows), member_rows(c, self.members, self.rows)
+        first = self.task.step_loss(xs[0], cs[0], t)
+        if first is None:
+            return None
+        return torch.stack([first, *(self.task.step_loss(xk, ck, t)
+                                     for xk, ck in zip(xs[1:], cs[1:]))])
+
+    def total(self, terms: list[torch.Tensor]) -> torch.Tensor:
+        return torch.stack(terms).sum(dim=0)
+
+
+def _control_losses(task: ctl.Task, stack: Stack, leaves: list[torch.Tensor], x0: torch.Tensor,
+                    rows: int, flow: GradientFlow) -> torch.Tensor:
+    k = len(leaves[0])
+    return ctl.closed_loop(_MemberLoss(task, k, rows), stack.net(leaves, rows), x0, flow)[0]
+
+
+@torch.no_grad()
+def _evaluate(task: ctl.Task, stack: Stack, x0s: list[torch.Tensor]) -> list[float]:
+    """Each member's mean loss over its initial states (one rollout for all; a member whose
+    rollout blows up gets NaN, as in its separate run)."""
+    rows = len(x0s[0])
+    try:
+        losses = _control_losses(task, stack, stack.leaves(), torch.cat(x0s), rows,
+                                 GradientFlow("R"))
+        return [float(v) for v in losses]
+    except _BLOW_UPS:
+        out = []
+        for k, x0 in enumerate(x0s):
+            try:
+                out.append(float(_control_losses(task, stack, stack.leaves([k]), x0, rows,
+                                                  GradientFlow("R"))[0]))
+            except _BLOW_UPS:
+                out.append(float("nan"))
+        return out
+
+
+def _control_update(cfgs: list[ctl.ControlConfig], task: ctl.Task, stack: Stack,
+                    batches: list[torch.Tensor], states: list[dict], idx: list[int]) -> None:
+    """One minibatch update of the members ``idx`` (each its batch), recorded in their
+    epoch's progress as :func:`adjointsim.train.control._update` records a separate run's."""
+    first = states[idx[0]]["step"] == 0
+    leaves = stack.leaves(idx)
+    flow = GradientFlow(cfgs[0].mode, diagnose=first)
+    try:
+        losses = _control_losses(task, stack, leaves, torch.cat([batches[k] for k in idx]),
+                                 len(batches[0]), flow)
+    except (NonFiniteStateError, NonFiniteInputError):
+        if len(idx) > 1:  # whose rows blew up is unknown: each member alone
+            for k in idx:
+                _control_update(cfgs, task, stack, batches, states, [k])
+        else:
+            states[idx[0]]["skipped"] += 1
+        return
+    update = flow.backward(losses.sum(), leaves)
+    keep, grads, records = [], [], []
+    for j, k in enumerate(idx):
+        upd = Update(clip_update([g[j] for g in update.grads], cfgs[k].clip),
+                     None if update.g_m is None else [g[j] for g in update.g_m],
+                     None if update.g_r is None else [g[j] for g in update.g_r])
+        loss = float(losses[j].detach())
+        if not (math.isfinite(loss) and math.isfinite(upd.norm())):
+            states[k]["skipped"] += 1
+            continue
+        keep.append(j)
+        grads.append(upd.grads)
+        records.append((k, loss, upd))
+    stack.adam([torch.stack(gs) for gs in zip(*grads)], [idx[j] for j in keep])
+    for k, loss, upd in records:
+        states[k]["losses"].append(loss)
+        states[k]["norms"].append(upd.norm())
+        if first:
+            states[k]["cos"] = upd.cosine()
+
+
+def _train_controllers(cfgs: list[ctl.ControlConfig], ckpts: list[dict | None],
+                       progress: bool) -> list[dict]:
+    cfg0 = cfgs[0]
+    task = ctl.get_task(cfg0.task, cfg0.level)
+    data = [ctl.initial_states(c, task) for c in cfgs]
+    nets = [ctl.build_net(c, task) for c in cfgs]
+    opts = [torch.optim.Adam(n.parameters(), lr=c.lr) for n, c in zip(nets, cfgs)]
+    states = [{"epoch": 0, "finished": False, **ctl._fresh_epoch()} for _ in cfgs]
+    histories: list[list[dict]] = [[] for _ in cfgs]
+    outs = [Path(c.out) for c in cfgs]
+    for k, ckpt in enumerate(ckpts):
+        if ckpt is not None:
+            restore(nets[k], ckpt["net"], outs[k] / "checkpoint.pt")
+            restore(opts[k], ckpt["optimizer"], outs[k] / "checkpoint.pt")
+            states[k], histories[k] = states[k] | ckpt["state"], ckpt["history"]
+            states[k]["finished"] = False
+    group = opts[0].param_groups[0]
+    stack = Stack(nets, [c.lr for c in cfgs], group["betas"], group["eps"])
+    for k in range(len(cfgs)):
+        stack.load(k, nets[k], opts[k])
+        outs[k].mkdir(parents=True, exist_ok=True)
+        write_json(outs[k] / "config.json", cfgs[k].as_dict())
+
+    def save() -> None:
+        for k, cfg in enumerate(cfgs):
+            stack.store(k, nets[k], opts[k])
+            save_checkpoint({"config": cfg.as_dict(), "net": nets[k].state_dict(),
+                             "optimizer": opts[k].state_dict(), "state": dict(states[k]),
+                             "history": histories[k]}, outs[k] / "checkpoint.pt")
+
+    members = list(range(len(cfgs)))
+    per_epoch = cfg0.train // cfg0.batch
+    state = states[0]  # every member's progress is the same
+    bar = tqdm(total=cfg0.epochs, initial=state["epoch"], unit="epoch", disable=not progress,
+               desc=f"{cfg0.task} {cfg0.mode} ×{len(cfgs)}")
+    try:
+        while state["epoch"] < cfg0.epochs:
+            orders = [torch.randperm(c.train, generator=torch.Generator().manual_seed(
+                int(np.random.SeedSequence([c.seed, state["epoch"]]).generate_state(1)[0])))
+                for c in cfgs]
+            while state["step"] < per_epoch:
+                with uninterrupted():
+                    start, i = time.perf_counter(), state["step"]
+                    rows = slice(i * cfg0.batch, (i + 1) * cfg0.batch)
+                    batches = [d[0][o[rows]] for d, o in zip(data, orders)]
+                    _control_update(cfgs, task, stack, batches, states, members)
+                    # each member's share of the ensemble's time
+                    share = (time.perf_counter() - start) / len(cfgs)
+                    for s in states:
+                        s["step"] += 1
+                        s["seconds"] += share
+            with uninterrupted():
+                start = time.perf_counter()
+                train = _evaluate(task, stack, [d[0] for d in data])
+                test = _evaluate(task, stack, [d[1] for d in data])
+                for s in states:
+                    s["seconds"] += (time.perf_counter() - start) / len(cfgs)
+                for k, cfg in enumerate(cfgs):
+                    ctl._end_epoch(cfg, task, nets[k], data[k][0], data[k][1], states[k],
+                                   histories[k], losses=(train[k], test[k]))
+                    write_history(outs[k] / "history.csv", histories[k], ctl.HISTORY_KEYS)
+            save()
+            bar.update()
+            bar.set_postfix(test=f"{np.nanmean([h[-1]['test_loss'] for h in histories]):.3e}")
+    except KeyboardInterrupt:
+        save()
+        raise
+    finally:
+        bar.close()
+    return [ctl._finish(cfgs[k], task, nets[k], data[k][1], histories[k]) for k in members]
+
+
+# ----------------------------------------------------------------------------- entry point
+def train_ensemble(cfgs: Sequence, resume: bool = False, progress: bool = True,
+                   overwrite: bool = False) -> list:
+    """Train the controllers ``cfgs`` (configs differing only in the seed, the run
+    directory, clip and lr) as one ensemble; returns what each separate run returns, in
+    order. ``resume`` and ``overwrite`` apply to every member as to a separate run: finished
+    members are read back, the rest train together."""
+    cfgs = list(cfgs)
+    if resume and overwrite:
+        raise UserError("--resume continues a run and --overwrite discards it: pass one")
+    for cfg in cfgs:
+        cfg.validate()
+    if not isinstance(cfgs[0], ctl.ControlConfig):
+        raise UserError("ensembles train controllers (ControlConfig); train neural steppers "
+                        "one run at a time")
+    check_members(cfgs, CONTROL_FREE)
+    if cfgs[0].weighting != "uniform":
+        raise UserError("an ensemble trains the task's loss as it is (weighting uniform), "
+                        f"not {cfgs[0].weighting}")
+    return _control_ensemble(cfgs, resume, progress, overwrite)
+
+
+def _control_ensemble(cfgs: list[ctl.ControlConfig], resume: bool, progress: bool,
+                      overwrite: bool) -> list[dict]:
+    use_threads(cfgs[0].threads)
+    ckpts = [ctl._claim(c, Path(c.out), resume, overwrite) for c in cfgs]
+    results: list[dict | None] = [None] * len(cfgs)
+    groups: dict[tuple, list[int]] = {}
+    for k, (cfg, ckpt) in enumerate(zip(cfgs, ckpts)):
+        if ckpt is not None and ctl._finished(ckpt, cfg, Path(cfg.out)):
+            results[k] = read_result(Path(cfg.out) / "result.json")
+            continue
+        at = (0, 0) if ckpt is None else (ckpt["state"]["epoch"], ckpt["state"].get("step", 0))
+        groups.setdefault(at, []).append(k)
+    for idx in groups.values():
+        done = _train_controllers([cfgs[k] for k in idx], [ckpts[k] for k in idx], progress)
+        for k, result in zip(idx, done):
+            results[k] = result
+    return results
