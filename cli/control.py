@@ -12,6 +12,7 @@ from .options import (
     overrides,
     run_options,
     seeds_option,
+    train_seeds,
     write_result,
 )
 
@@ -71,26 +72,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _ensemble(args: argparse.Namespace, cfg, out: Path) -> int:
     """``--seeds``: one run per seed in ``out/seedN``, trained as one ensemble."""
-    import dataclasses
-
-    from adjointsim.errors import UserError
     from adjointsim.files import write_json
-    from adjointsim.run import require_checkpoint, run_errors
-    from adjointsim.train.ensemble import train_ensemble
 
-    if args.seed is not None:
-        raise UserError("--seed and --seeds: pass one")
-    if len(set(args.seeds)) < len(args.seeds):
-        raise UserError(f"--seeds {' '.join(map(str, args.seeds))} repeats a seed")
-    cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]
-    if args.resume:
-        for c in cfgs:
-            require_checkpoint(Path(c.out))
-    print(f"{cfg.task} ({cfg.level}), mode {cfg.mode}, clip {cfg.clip}: an ensemble of "
-          f"{len(cfgs)} seeds", flush=True)
-    with run_errors(out):
-        results = train_ensemble(cfgs, resume=args.resume, progress=args.progress,
-                                 overwrite=args.overwrite)
+    cfgs, results = train_seeds(args, cfg, out,
+                                f"{cfg.task} ({cfg.level}), mode {cfg.mode}, clip {cfg.clip}")
     if args.json is not None:
         write_json(args.json, results)
     for c, r in zip(cfgs, results):

@@ -51,6 +51,29 @@ def seeds_option(p: argparse.ArgumentParser) -> None:
                    "in --out/seedN (replaces --seed)")
 
 
+def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str
+                ) -> tuple[list, list]:
+    """``--seeds``: ``cfg`` once per seed, each run in ``out/seedN``, trained as one ensemble
+    (announced as ``what``); returns the members' configs and what each run returns."""
+    from adjointsim.errors import UserError
+    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.train.ensemble import train_ensemble
+
+    if args.seed is not None:
+        raise UserError("--seed and --seeds: pass one")
+    if len(set(args.seeds)) < len(args.seeds):
+        raise UserError(f"--seeds {' '.join(map(str, args.seeds))} repeats a seed")
+    cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]
+    if args.resume:
+        for c in cfgs:
+            require_checkpoint(Path(c.out))
+    print(f"{what}: an ensemble of {len(cfgs)} seeds", flush=True)
+    with run_errors(out):
+        results = train_ensemble(cfgs, resume=args.resume, progress=args.progress,
+                                 overwrite=args.overwrite)
+    return cfgs, results
+
+
 def json_option(p: argparse.ArgumentParser, help_text: str = "also write the result rows "
                 "here as JSON") -> None:
     p.add_argument("--json", type=Path, default=None, metavar="PATH", help=help_text)

@@ -7,7 +7,15 @@ from pathlib import Path
 
 from adjointsim.errors import UserError
 
-from .options import THREADS_HELP, config_flags, overrides, run_options, write_result
+from .options import (
+    THREADS_HELP,
+    config_flags,
+    overrides,
+    run_options,
+    seeds_option,
+    train_seeds,
+    write_result,
+)
 
 _HELPS = {
     "mode": "the unrolling schedule ONE, or a gradient flow (WIG, NOG; R, M, S, N, C)",
@@ -23,10 +31,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
     run_options(p, "runs/ks")
     config_flags(p, TrainConfig, TrainConfig.ACCEPTED, skip=("out",), helps=_HELPS)
+    seeds_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import read_history, require_checkpoint, run_errors
+    from adjointsim.run import require_checkpoint, run_errors
     from adjointsim.train.trainer import TrainConfig, build_model, describe, train
 
     values = overrides(args, TrainConfig)
@@ -42,16 +51,39 @@ def run(args: argparse.Namespace) -> int:
                             '"1:1e-4,2:1e-5"') from None
     cfg = TrainConfig.load(args.config, **values)
     out = Path(cfg.out)
+    if args.seeds:
+        cfgs, _ = train_seeds(args, cfg, out,
+                              f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}")
+        results = [_result(c) for c in cfgs]
+        if args.json is not None:
+            from adjointsim.files import write_json
+
+            write_json(args.json, results)
+        for c, r in zip(cfgs, results):
+            print(f"seed {c.seed}: final loss {_loss(r)}; run in {c.out}")
+        return 0
     if args.resume:
         require_checkpoint(out)
     print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
     with run_errors(out):
         train(cfg, resume=args.resume, progress=args.progress, overwrite=args.overwrite)
-    # history.csv is written when the run finishes (not after a --max-iterations stop)
-    done = out / "history.csv"
-    history = read_history(done) if done.exists() else []
-    write_result(args, {**cfg.as_dict(), "iterations": len(history),
-                        "skipped": sum(h["skipped"] for h in history),
-                        "final_loss": history[-1]["loss"] if history else None})
+    write_result(args, _result(cfg))
     print(f"run in {out}")
     return 0
+
+
+def _result(cfg) -> dict:
+    """A run's config with its iterations, skipped updates and final loss."""
+    from adjointsim.run import read_history
+
+    # history.csv is written when the run finishes (not after a --max-iterations stop)
+    done = Path(cfg.out) / "history.csv"
+    history = read_history(done) if done.exists() else []
+    return {**cfg.as_dict(), "iterations": len(history),
+            "skipped": sum(h["skipped"] for h in history),
+            "final_loss": history[-1]["loss"] if history else None}
+
+
+def _loss(result: dict) -> str:
+    loss = result["final_loss"]
+    return "none yet" if loss is None else f"{loss:.4e}"

@@ -14,8 +14,10 @@ equals its separate run to float rounding, and its run directory holds exactly w
 run writes (``config.json``, ``history.csv``, ``checkpoint.pt``, ``result.json``, plots): a
 member resumes, is evaluated and is tabulated as an ordinary run, alone or in an ensemble again.
 
-Members may differ in ``seed``, ``out``, ``clip`` and ``lr``. The stacking (:class:`Stack`,
-:class:`EnsembleNet`) serves any network; :func:`train_ensemble` trains controllers.
+The stacking (:class:`Stack`, :class:`EnsembleNet`) serves any network; :func:`train_ensemble`
+trains controllers (members may differ in ``seed``, ``out``, ``clip`` and ``lr``) and neural
+time-steppers (``seed``, ``out`` and ``lr``; every unrolling mode, prediction and correction):
+each member keeps its own spike cutoff and rollback guard, as in its separate run.
 
 An ensemble saves every member's checkpoint at the end of each epoch and on Ctrl-C between two
 updates. Should it die between two members' saves, the members resume from different points:
@@ -45,11 +47,16 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import control as ctl
 from .checkpoint import restore, save_checkpoint
+from .evaluate import BLOW_UPS
+from .model import NeuralStepper
 from .threads import use_threads
-from .unroll import GradientFlow, Update, clip_update
+from .trainer import Run, TrainConfig, TrainData, _claim, loop
+from .unroll import GradientFlow, Update, clip_update, unrolled_loss
 
 #: config keys members of a controller ensemble may differ in
 CONTROL_FREE = ("seed", "out", "clip", "lr")
+#: config keys members of a neural-stepper ensemble may differ in
+STEPPER_FREE = ("seed", "out", "lr")
 _BLOW_UPS = (NonFiniteStateError, NonFiniteInputError, FloatingPointError)
 
 
@@ -401,21 +408,126 @@ def _train_controllers(cfgs: list[ctl.ControlConfig], ckpts: list[dict | None],
     return [ctl._finish(cfgs[k], task, nets[k], data[k][1], histories[k]) for k in members]
 
 
+# ----------------------------------------------------------------------------- neural steppers
+def _stepper_update(runs: list[Run], plans: list[list[dict]], data: TrainData, stack: Stack,
+                    stage: dict, wins: np.ndarray, idx: list[int]) -> None:
+    """One update of the members ``idx``, as :func:`adjointsim.train.trainer.train` makes one
+    for a separate run: the losses, gradients and their norms, the spike cutoff, Adam, the
+    history rows and the rollback guard, each member's own."""
+    cfg = runs[0].cfg
+    batches = [data.batch(runs[k].cfg, plans[k][runs[k].state["stage"]], runs[k].state, wins)
+               for k in idx]
+    for k, batch in zip(idx, batches):
+        stack.lrs[k] = batch[3]
+    leaves = stack.leaves(idx)
+    model = NeuralStepper(stack.net(leaves, len(batches[0][0])), cfg.setup,
+                          runs[0].model.solver if cfg.setup == "correction" else None,
+                          cfg.correction)
+    flow = GradientFlow(stage["flow"])
+    try:
+        frames, params, conditions = (torch.cat(t) for t in list(zip(*batches))[:3])
+        losses = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup,
+                               cfg.truncate, members=len(idx))
+        finite = torch.isfinite(losses.detach())
+        if finite.any():
+            grads = flow.backward(losses[finite].sum(), leaves).grads
+            # as clip_grad_norm_: the norm of the tensors' norms, each member's own
+            norms = torch.stack([g.flatten(1).norm(dim=1) for g in grads], 1).norm(dim=1)
+    except BLOW_UPS:  # the coarse solver refused a state some member's model made
+        if len(idx) > 1:  # whose is unknown: each member alone
+            for k in idx:
+                _stepper_update(runs, plans, data, stack, stage, wins, [k])
+            return
+        losses, finite = torch.tensor([float("nan")]), torch.tensor([False])
+    skipped = [not bool(finite[j]) or runs[k].spike(float(norms[j]))
+               for j, k in enumerate(idx)]
+    step = [j for j, s in enumerate(skipped) if not s]
+    if step:
+        sel = torch.tensor(step)
+        stack.adam([g[sel] for g in grads], [idx[j] for j in step])
+    due = [runs[k].record(stage, batches[j][3], float(losses[j].detach()), skipped[j])
+           for j, k in enumerate(idx)]
+    if any(due):
+        for k in idx:
+            run = runs[k]
+            stack.store(k, run.model.net, run.optimizer)
+            run.guard()
+            stack.load(k, run.model.net, run.optimizer)
+
+
+def _train_steppers(runs: list[Run], plans: list[list[dict]], data: TrainData,
+                    progress: bool) -> None:
+    cfg = runs[0].cfg
+    group = runs[0].optimizer.param_groups[0]
+    stack = Stack([r.model.net for r in runs],
+                  [r.optimizer.param_groups[0]["lr"] for r in runs], group["betas"],
+                  group["eps"])
+    for k, run in enumerate(runs):
+        stack.load(k, run.model.net, run.optimizer)
+    members = list(range(len(runs)))
+
+    def store() -> None:
+        for k, run in enumerate(runs):
+            stack.store(k, run.model.net, run.optimizer)
+            for g in run.optimizer.param_groups:
+                g["lr"] = stack.lrs[k]
+
+    def save() -> None:
+        store()
+        for run in runs:
+            run.save()
+
+    bar = tqdm(total=data.total, initial=runs[0].state["total"], unit="it",
+               disable=not progress, desc=f"train {cfg.mode} ×{len(runs)}")
+    try:
+        loop(cfg, data, runs,
+             lambda stage, wins: _stepper_update(runs, plans, data, stack, stage, wins, members),
+             save, bar)
+    except KeyboardInterrupt:
+        save()
+        raise
+    finally:
+        bar.close()
+    store()
+    for run in runs:
+        run.finish(data.plan)
+
+
+def _stepper_ensemble(cfgs: list[TrainConfig], resume: bool, progress: bool,
+                      overwrite: bool) -> list[NeuralStepper]:
+    use_threads(cfgs[0].threads)
+    for cfg in cfgs:
+        _claim(Path(cfg.out), dataclasses.asdict(cfg), resume, overwrite)
+    data = TrainData.load(cfgs[0])
+    plans = [data.plan_of(c) for c in cfgs]
+    runs = [Run.open(c, plan, resume, overwrite) for c, plan in zip(cfgs, plans)]
+    groups: dict[tuple, list[int]] = {}
+    for k, run in enumerate(runs):
+        groups.setdefault((run.state["stage"], run.state["iteration"]), []).append(k)
+    for idx in groups.values():
+        _train_steppers([runs[k] for k in idx], [plans[k] for k in idx], data, progress)
+    return [run.model for run in runs]
+
+
 # ----------------------------------------------------------------------------- entry point
 def train_ensemble(cfgs: Sequence, resume: bool = False, progress: bool = True,
                    overwrite: bool = False) -> list:
-    """Train the controllers ``cfgs`` (configs differing only in the seed, the run
-    directory, clip and lr) as one ensemble; returns what each separate run returns, in
-    order. ``resume`` and ``overwrite`` apply to every member as to a separate run: finished
-    members are read back, the rest train together."""
+    """Train the controllers or neural time-steppers ``cfgs`` (configs of one kind differing
+    only in the seed, the run directory and what :data:`CONTROL_FREE` / :data:`STEPPER_FREE`
+    allow) as one ensemble; returns what each separate run returns, in order. ``resume`` and
+    ``overwrite`` apply to every member as to a separate run: finished members are read back,
+    the rest train together."""
     cfgs = list(cfgs)
     if resume and overwrite:
         raise UserError("--resume continues a run and --overwrite discards it: pass one")
     for cfg in cfgs:
         cfg.validate()
+    if isinstance(cfgs[0], TrainConfig):
+        check_members(cfgs, STEPPER_FREE)
+        return _stepper_ensemble(cfgs, resume, progress, overwrite)
     if not isinstance(cfgs[0], ctl.ControlConfig):
-        raise UserError("ensembles train controllers (ControlConfig); train neural steppers "
-                        "one run at a time")
+        raise UserError("ensembles train controllers (ControlConfig) and neural time-steppers "
+                        f"(TrainConfig), not {type(cfgs[0]).__name__}")
     check_members(cfgs, CONTROL_FREE)
     if cfgs[0].weighting != "uniform":
         raise UserError("an ensemble trains the task's loss as it is (weighting uniform), "

@@ -221,115 +221,204 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
     """
     cfg.validate()
     use_threads(cfg.threads)
-    out = Path(cfg.out)
-    _claim(out, asdict(cfg), resume, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
-    dataset = datamod.load(cfg.data)
-    if dataset.problem.name != cfg.problem:
-        raise UserError(f"{cfg.data} holds {dataset.problem.name!r} data, not {cfg.problem!r}")
-    split = dataset.splits["train"]
-    frames_all = torch.from_numpy(split.trajectories).to(DTYPES[cfg.dtype])
-    params_all = torch.from_numpy(split.params)
-    cond_all = torch.from_numpy(split.conditions)
-    plan = _plan(cfg, lambda length: len(datamod.windows(split, length, cfg.stride)))
-    if overwrite:  # only now that the new run is known to start
-        discard(out, RUN_FILES)
-
-    model = build_model(cfg)
-    optimizer = torch.optim.Adam(model.parameters(), lr=plan[0]["lr"])
-    state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
-             "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
-    # the weights and optimiser state at state["best"], for a rollback
-    kept: dict[str, Any] = {"best": None}
-    history: list[dict] = []
-    ckpt_path = out / "checkpoint.pt"
-    if resume and ckpt_path.exists():
-        ckpt = load_checkpoint(ckpt_path, recover=_RECOVER)
-        # options added since the checkpoint was written take their defaults
-        theirs = asdict(TrainConfig()) | ckpt["config"]
-        # where the run lives, how many threads and when to stop do not change its result
-        ours = asdict(cfg) | {k: theirs[k] for k in RESUMABLE}
-        if str(Path(theirs["data"]).resolve()) == str(Path(cfg.data).resolve()):
-            ours["data"] = theirs["data"]
-        if theirs != ours:
-            differ = differing(ours, theirs)
-            raise UserError(f"{ckpt_path} was written with another configuration (differs in "
-                            f"{', '.join(differ)}); train into a new --out or use --overwrite")
-        restore(model, ckpt["model"], ckpt_path)
-        restore(optimizer, ckpt["optimizer"], ckpt_path)
-        state, history = state | ckpt["state"], ckpt["history"]
-        kept["best"] = ckpt.get("best")
-    write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
-
-    def save() -> None:
-        save_checkpoint({"config": asdict(cfg), "model": model.state_dict(),
-                         "optimizer": optimizer.state_dict(), "state": state,
-                         "history": history, "best": kept["best"]}, ckpt_path)
-
-    total_iterations = sum(s["iterations"] for s in plan)
-    bar = tqdm(total=total_iterations, initial=state["total"], desc=f"train {cfg.mode}",
+    _claim(Path(cfg.out), asdict(cfg), resume, overwrite)
+    data = TrainData.load(cfg)
+    run = Run.open(cfg, data.plan, resume, overwrite)
+    bar = tqdm(total=data.total, initial=run.state["total"], desc=f"train {cfg.mode}",
                disable=not progress, unit="it")
     try:
-        _loop(cfg, plan, split, frames_all, params_all, cond_all, model, optimizer, state,
-              history, kept, save, bar)
+        loop(cfg, data, [run], lambda stage, wins: _iteration(cfg, stage, wins, data, run),
+             run.save, bar)
     except KeyboardInterrupt:
-        save()  # between updates (see uninterrupted): the run resumes bit-identically
+        run.save()  # between updates (see uninterrupted): the run resumes bit-identically
         raise
     finally:
         bar.close()
-    if cfg.max_iterations and state["stage"] < len(plan):
-        return model
-    state["finished"] = True
-    save()
-    _write_history(history, out)
-    return model
+    run.finish(data.plan)
+    return run.model
 
 
-def _loop(cfg, plan, split, frames_all, params_all, cond_all, model, optimizer, state,
-          history, kept, save, bar) -> None:
-    """The stages' iterations, each one update held together against Ctrl-C."""
-    while state["stage"] < len(plan):
-        stage = plan[state["stage"]]
-        length = stage["m"] + cfg.warmup + 1
-        wins = datamod.windows(split, length, cfg.stride)
-        offsets = torch.arange(length)
+@dataclass
+class TrainData:
+    """A run's training split as tensors, and its plan (:func:`_plan`): what the members of an
+    ensemble share."""
+
+    split: Any
+    frames: torch.Tensor
+    params: torch.Tensor
+    conditions: torch.Tensor
+    plan: list[dict]
+
+    @classmethod
+    def load(cls, cfg: TrainConfig) -> TrainData:
+        dataset = datamod.load(cfg.data)
+        if dataset.problem.name != cfg.problem:
+            raise UserError(f"{cfg.data} holds {dataset.problem.name!r} data, not "
+                            f"{cfg.problem!r}")
+        split = dataset.splits["train"]
+        data = cls(split, torch.from_numpy(split.trajectories).to(DTYPES[cfg.dtype]),
+                   torch.from_numpy(split.params), torch.from_numpy(split.conditions), [])
+        data.plan = data.plan_of(cfg)
+        return data
+
+    def plan_of(self, cfg: TrainConfig) -> list[dict]:
+        """``cfg``'s plan on this split (an ensemble's members differ in their rates)."""
+        return _plan(cfg, lambda length: len(datamod.windows(self.split, length, cfg.stride)))
+
+    @property
+    def total(self) -> int:
+        return sum(s["iterations"] for s in self.plan)
+
+    def batch(self, cfg: TrainConfig, stage: dict, state: dict, wins: np.ndarray
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+        """The reference windows, scene parameters and conditions of a run's next update, and
+        its learning rate."""
+        it = state["iteration"]
+        epoch, pos = divmod(it, stage["per_epoch"])
+        # The order of an epoch depends only on (seed, stage, epoch): resumable.
+        key = np.random.SeedSequence([cfg.seed, state["stage"], epoch]).generate_state(1)
+        g = torch.Generator().manual_seed(int(key[0]))
+        order = torch.randperm(len(wins), generator=g)
+        pick = torch.from_numpy(wins)[order[pos * stage["batch"]:(pos + 1) * stage["batch"]]]
+        traj, start = pick[:, 0], pick[:, 1]
+        frames = self.frames[traj[:, None], start[:, None] + torch.arange(window(stage, cfg))]
+        lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every) * state["lr_scale"]
+        return frames, self.params[traj], self.conditions[traj], lr
+
+
+def window(stage: dict, cfg: TrainConfig) -> int:
+    """The frames of one reference window of ``stage``."""
+    return stage["m"] + cfg.warmup + 1
+
+
+@dataclass
+class Run:
+    """One run's model, optimiser, progress and history, and its directory's files."""
+
+    cfg: TrainConfig
+    model: NeuralStepper
+    optimizer: torch.optim.Adam
+    state: dict
+    history: list[dict]
+    #: the weights and optimiser state at state["best"], for a rollback
+    kept: dict[str, Any]
+
+    @classmethod
+    def open(cls, cfg: TrainConfig, plan: list[dict], resume: bool, overwrite: bool) -> Run:
+        """A fresh run, or with ``resume`` the one its checkpoint holds (checked against
+        ``cfg``); writes ``config.json``."""
+        out = Path(cfg.out)
+        out.mkdir(parents=True, exist_ok=True)
+        if overwrite:  # only now that the new run is known to start
+            discard(out, RUN_FILES)
+        model = build_model(cfg)
+        optimizer = torch.optim.Adam(model.parameters(), lr=plan[0]["lr"])
+        state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
+                 "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
+        kept: dict[str, Any] = {"best": None}
+        history: list[dict] = []
+        ckpt_path = out / "checkpoint.pt"
+        if resume and ckpt_path.exists():
+            ckpt = load_checkpoint(ckpt_path, recover=_RECOVER)
+            # options added since the checkpoint was written take their defaults
+            theirs = asdict(TrainConfig()) | ckpt["config"]
+            # where the run lives, how many threads and when to stop do not change its result
+            ours = asdict(cfg) | {k: theirs[k] for k in RESUMABLE}
+            if str(Path(theirs["data"]).resolve()) == str(Path(cfg.data).resolve()):
+                ours["data"] = theirs["data"]
+            if theirs != ours:
+                differ = differing(ours, theirs)
+                raise UserError(f"{ckpt_path} was written with another configuration (differs "
+                                f"in {', '.join(differ)}); train into a new --out or use "
+                                "--overwrite")
+            restore(model, ckpt["model"], ckpt_path)
+            restore(optimizer, ckpt["optimizer"], ckpt_path)
+            state, history = state | ckpt["state"], ckpt["history"]
+            kept["best"] = ckpt.get("best")
+        write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
+        return cls(cfg, model, optimizer, state, history, kept)
+
+    def save(self) -> None:
+        save_checkpoint({"config": asdict(self.cfg), "model": self.model.state_dict(),
+                         "optimizer": self.optimizer.state_dict(), "state": self.state,
+                         "history": self.history, "best": self.kept["best"]},
+                        Path(self.cfg.out) / "checkpoint.pt")
+
+    def spike(self, norm: float) -> bool:
+        """Whether an update of gradient norm ``norm`` is skipped (not finite, or a spike);
+        follows the running mean."""
+        # The running mean restarts each stage (a longer unroll has larger gradients)
+        # and also follows skipped norms, capped, so a lasting rise is let through.
+        state = self.state
+        ema, cutoff = state["grad_ema"], self.cfg.spike_factor * state["grad_ema"]
+        spike = state["iteration"] > 20 and norm > cutoff
+        if math.isfinite(norm):
+            state["grad_ema"] = norm if ema == 0 else 0.95 * ema + 0.05 * min(norm, cutoff)
+        return not math.isfinite(norm) or spike
+
+    def record(self, stage: dict, lr: float, loss: float, skipped: bool) -> bool:
+        """The update's history row and counters; whether the rollback guard is due."""
+        state = self.state
+        state["skipped"] += skipped
+        self.history.append({"iteration": state["total"], "stage": state["stage"],
+                             "m": stage["m"], "lr": lr, "loss": loss, "skipped": skipped})
+        state["iteration"] += 1
+        state["total"] += 1
+        return bool(self.cfg.rollback) and state["iteration"] % ROLLBACK_WINDOW == 0
+
+    def guard(self) -> None:
+        self.kept["best"] = _guard(self.cfg.rollback, self.history, self.state, self.model,
+                                   self.optimizer, self.kept["best"])
+
+    def next_stage(self) -> None:
+        state = self.state
+        state["stage"] += 1
+        state["iteration"] = 0
+        state["grad_ema"] = 0.0
+        state["best"], self.kept["best"] = math.inf, None  # a longer unroll has a larger loss
+
+    def finish(self, plan: list[dict]) -> None:
+        """Mark the run finished and write its history, unless ``max_iterations`` stopped it."""
+        if self.cfg.max_iterations and self.state["stage"] < len(plan):
+            return
+        self.state["finished"] = True
+        self.save()
+        _write_history(self.history, Path(self.cfg.out))
+
+
+def loop(cfg: TrainConfig, data: TrainData, runs: list[Run], iterate, save, bar) -> None:
+    """The stages' iterations of ``runs`` (one run, or an ensemble's members, all at the same
+    point), each update ``iterate(stage, windows)`` held together against Ctrl-C."""
+    state = runs[0].state
+    while state["stage"] < len(data.plan):
+        stage = data.plan[state["stage"]]
+        wins = datamod.windows(data.split, window(stage, cfg), cfg.stride)
         while state["iteration"] < stage["iterations"]:
             if cfg.max_iterations and state["total"] >= cfg.max_iterations:
                 save()
                 return
             with uninterrupted():
-                _iteration(cfg, stage, wins, offsets, frames_all, params_all, cond_all, model,
-                           optimizer, state, history, kept)
+                iterate(stage, wins)
             bar.update()
-            bar.set_postfix(loss=f"{history[-1]['loss']:.3e}", m=stage["m"])
+            loss = np.mean([r.history[-1]["loss"] for r in runs])
+            bar.set_postfix(loss=f"{loss:.3e}", m=stage["m"])
             if state["total"] % cfg.checkpoint_every == 0:
                 save()
-        state["stage"] += 1
-        state["iteration"] = 0
-        state["grad_ema"] = 0.0
-        state["best"], kept["best"] = math.inf, None  # a longer unroll has a larger loss
+        for run in runs:
+            run.next_stage()
 
 
-def _iteration(cfg, stage, wins, offsets, frames_all, params_all, cond_all, model, optimizer,
-               state, history, kept) -> None:
+def _iteration(cfg: TrainConfig, stage: dict, wins: np.ndarray, data: TrainData,
+               run: Run) -> None:
     """One update, its history row and counters, and the rollback guard."""
-    it = state["iteration"]
-    epoch, pos = divmod(it, stage["per_epoch"])
-    # The order of an epoch depends only on (seed, stage, epoch): resumable.
-    key = np.random.SeedSequence([cfg.seed, state["stage"], epoch]).generate_state(1)
-    g = torch.Generator().manual_seed(int(key[0]))
-    order = torch.randperm(len(wins), generator=g)
-    pick = torch.from_numpy(wins)[order[pos * stage["batch"]:(pos + 1) * stage["batch"]]]
-    traj, start = pick[:, 0], pick[:, 1]
-    frames = frames_all[traj[:, None], start[:, None] + offsets]
-    lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every) * state["lr_scale"]
+    model, optimizer = run.model, run.optimizer
+    frames, params, conditions, lr = data.batch(cfg, stage, run.state, wins)
     for group in optimizer.param_groups:
         group["lr"] = lr
     optimizer.zero_grad(set_to_none=True)
     try:
         flow = GradientFlow(stage["flow"])
-        loss = unrolled_loss(model, frames, params_all[traj], cond_all[traj], flow,
-                             cfg.warmup, cfg.truncate)
+        loss = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup, cfg.truncate)
         skipped = not torch.isfinite(loss)
         if not skipped:
             flow.backward(loss, list(model.parameters()))
@@ -337,22 +426,11 @@ def _iteration(cfg, stage, wins, offsets, frames_all, params_all, cond_all, mode
         loss, skipped = torch.tensor(float("nan")), True
     if not skipped:
         norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf")))
-        # The running mean restarts each stage (a longer unroll has larger gradients)
-        # and also follows skipped norms, capped, so a lasting rise is let through.
-        ema, cutoff = state["grad_ema"], cfg.spike_factor * state["grad_ema"]
-        spike = it > 20 and norm > cutoff
-        skipped = not math.isfinite(norm) or spike
-        if math.isfinite(norm):
-            state["grad_ema"] = norm if ema == 0 else 0.95 * ema + 0.05 * min(norm, cutoff)
+        skipped = run.spike(norm)
         if not skipped:
             optimizer.step()
-    state["skipped"] += skipped
-    history.append({"iteration": state["total"], "stage": state["stage"],
-                    "m": stage["m"], "lr": lr, "loss": loss.item(), "skipped": skipped})
-    state["iteration"] += 1
-    state["total"] += 1
-    if cfg.rollback and state["iteration"] % ROLLBACK_WINDOW == 0:
-        kept["best"] = _guard(cfg.rollback, history, state, model, optimizer, kept["best"])
+    if run.record(stage, lr, loss.item(), skipped):
+        run.guard()
 
 
 #: updates per window of the rollback guard
@@ -372,7 +450,9 @@ def _guard(factor: float, history: list[dict], state: dict, model, optimizer, be
         return copy.deepcopy({"model": model.state_dict(), "optimizer": optimizer.state_dict()})
     if best is not None and not median <= factor * state["best"]:
         model.load_state_dict(best["model"])
-        optimizer.load_state_dict(best["optimizer"])
+        # Adam takes the state's tensors as its own and updates them in place: a copy keeps
+        # the snapshot intact for a later rollback to it
+        optimizer.load_state_dict(copy.deepcopy(best["optimizer"]))
         state["lr_scale"] *= 0.5
         state["rollbacks"] += 1
     return best

@@ -231,6 +231,7 @@ def unrolled_loss(
     mode: str | GradientFlow,
     warmup: int = 0,
     truncate: int = 0,
+    members: int = 0,
 ) -> torch.Tensor:
     """List et al.'s unrolled loss. ``frames``: (B, w + m + 1, C, *grid) reference window.
 
@@ -238,7 +239,9 @@ def unrolled_loss(
     the loss) and the loss is the mean over s = 1..m of MSE(û_{w+s}, u_{w+s}). ``mode`` is a
     mode name or a :class:`GradientFlow` (needed for C, whose update then comes from
     ``flow.backward(loss, params)``). ``truncate=k`` detaches the state every k steps
-    (truncated BPTT).
+    (truncated BPTT). ``members=K`` returns K losses, one per member of an ensemble whose rows
+    come in K equal blocks (member-major, see :mod:`adjointsim.train.ensemble`): each the
+    loss of its own rows, as its separate run computes it.
     """
     name = mode.name if isinstance(mode, GradientFlow) else mode
     flow = mode if isinstance(mode, GradientFlow) else GradientFlow(mode)
@@ -260,5 +263,9 @@ def unrolled_loss(
         if truncate and s > 1 and (s - 1) % truncate == 0:
             u = u.detach()
         u = model(u, params, conditions, flow)
-        losses.append(torch.mean((u - frames[:, warmup + s]) ** 2))
-    return torch.stack(losses).mean()
+        error = (u - frames[:, warmup + s]) ** 2
+        if members:  # C's doubled batch holds two blocks of members, each member's rows in both
+            losses.append(error.reshape(2 if flow.doubled else 1, members, -1).mean(dim=(0, 2)))
+        else:
+            losses.append(torch.mean(error))
+    return torch.stack(losses).mean(dim=0) if members else torch.stack(losses).mean()

@@ -8,6 +8,7 @@ from adjointsim.run import read_history
 from adjointsim.train import control
 from adjointsim.train.checkpoint import load_checkpoint
 from adjointsim.train.ensemble import Stack, train_ensemble
+from adjointsim.train.trainer import TrainConfig, train
 
 CLIPS = ("none", "norm", "value", "none")
 LRS = (1e-3, 1e-3, 1e-3, 3e-3)
@@ -100,3 +101,80 @@ def test_members_must_share_everything_but_seed_clip_and_lr(tmp_path):
     same[1].out = same[0].out
     with pytest.raises(UserError, match="run directories of their own"):
         train_ensemble(same, progress=False)
+
+
+# ----------------------------------------------------------------------------- neural steppers
+def _stepper(tiny, tmp_path, where, seed, mode, setup="correction", **kw):
+    """A tiny net over a few dozen updates (ONE: its batch × m, so fewer)."""
+    kw = {"lr": 3e-3 if seed == 2 else 1e-3, "epochs": 3.0, "stride": 8} | kw
+    return TrainConfig(data=str(tiny), out=str(tmp_path / where / f"s{seed}"), setup=setup,
+                       mode=mode, seed=seed, width=4, blocks=1, unroll=2, batch=2,
+                       dtype="float64", lr_decay_every=10, checkpoint_every=1000, **kw)
+
+
+def _stepper_checkpoints(tmp_path, where, seed):
+    ckpt = load_checkpoint(tmp_path / where / f"s{seed}" / "checkpoint.pt")
+    return ckpt["model"], ckpt
+
+
+@pytest.mark.parametrize(("mode", "setup", "kw"), [
+    ("WIG", "correction", {}),
+    ("NOG", "correction", {"rollback": 1.01, "lr": 0.05}),
+    ("ONE", "correction", {}),
+    ("C", "prediction", {"spike_factor": 1.2}),
+])
+def test_stepper_members_equal_their_separate_runs(tiny, tmp_path, monkeypatch, mode, setup,
+                                                   kw):
+    from adjointsim.train import trainer
+
+    monkeypatch.setattr(trainer, "ROLLBACK_WINDOW", 4)  # the guard acts within the run
+    seeds, states = (0, 1, 2), []
+    models = train_ensemble([_stepper(tiny, tmp_path, "ens", s, mode, setup, **kw)
+                             for s in seeds], progress=False)
+    weights = []
+    for s, model in zip(seeds, models):
+        train(_stepper(tiny, tmp_path, "sep", s, mode, setup, **kw), progress=False)
+        a, ens = _stepper_checkpoints(tmp_path, "ens", s)
+        b, sep = _stepper_checkpoints(tmp_path, "sep", s)
+        assert _max_rel(a, b) <= 1e-10
+        assert _max_rel(dict(model.state_dict()), b) <= 1e-10
+        assert ens["state"]["total"] == sep["state"]["total"] >= 20
+        for key in ("skipped", "rollbacks", "finished", "stage"):
+            assert ens["state"].get(key) == sep["state"].get(key)
+        assert ([h["loss"] for h in ens["history"]]
+                == pytest.approx([h["loss"] for h in sep["history"]], rel=1e-10, nan_ok=True))
+        assert [h["skipped"] for h in ens["history"]] == [h["skipped"] for h in sep["history"]]
+        for name in ("history.csv", "training.png", "config.json"):
+            assert (tmp_path / "ens" / f"s{s}" / name).exists()
+        weights.append(a)
+        states.append(ens["state"])
+    # the members really differ, and the guards acted (rolled back twice to one snapshot, or
+    # skipped spikes of some members only), so the checks above can fail
+    assert all(_max_rel(weights[0], w) > 1e-3 for w in weights[1:])
+    if "rollback" in kw:
+        assert max(s["rollbacks"] for s in states) >= 2
+    if "spike_factor" in kw:
+        assert 0 < sum(s["skipped"] > 0 for s in states) < len(states)
+
+
+def test_train_seeds_writes_one_run_per_seed_equal_to_the_ensemble(tiny, tmp_path, capsys):
+    import json
+
+    from adjointsim.cli import main
+
+    flags = ["--data", str(tiny), "--width", "4", "--blocks", "1", "--unroll", "2", "--batch",
+             "2", "--epochs", "1", "--stride", "8", "--dtype", "float64", "--no-progress"]
+    out, rows = tmp_path / "runs", tmp_path / "rows.json"
+    assert main(["train", *flags, "--out", str(out), "--seeds", "0", "2", "--json",
+                 str(rows)]) == 0
+    assert [(r["seed"], r["out"]) for r in json.loads(rows.read_text())] == [
+        (0, str(out / "seed0")), (2, str(out / "seed2"))]
+    train(TrainConfig(data=str(tiny), out=str(tmp_path / "sep"), seed=2, width=4, blocks=1,
+                      unroll=2, batch=2, epochs=1.0, stride=8, dtype="float64"), progress=False)
+    a, b = (load_checkpoint(d / "checkpoint.pt")["model"] for d in (out / "seed2",
+                                                                    tmp_path / "sep"))
+    assert _max_rel(a, b) <= 1e-10
+    for command in (["train", *flags], ["control", "cartpole"]):
+        assert main([*command, "--out", str(tmp_path / "x"), "--seeds", "0", "1",
+                     "--seed", "1"]) == 2
+        assert "--seed and --seeds: pass one" in capsys.readouterr().err

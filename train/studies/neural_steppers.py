@@ -4,7 +4,9 @@ evaluated and tabulated (mean ± std per cell), with a plot; ``ks`` (Kuramoto–
 
 Everything a study makes lives under its output directory: the dataset (made once, before the
 cells), and per cell ``SETUP-MODE-seedK/`` with the model's checkpoint (a retried cell resumes
-from it), its results and rollout plots.
+from it), its results and rollout plots. The cells of one setup and mode (differing only in the
+seed) train together as one ensemble (:func:`adjointsim.train.ensemble.train_ensemble`), each
+member equal to its separate run.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
 
 from .. import data as datamod
+from ..ensemble import train_ensemble
 from ..evaluate import TEST_SPLITS, evaluate
 from ..trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
 
@@ -83,15 +86,39 @@ def _prepare(problem: str, size: str, out: Path) -> dict:
     return {"data": str(data_path.resolve())}
 
 
+def _config(cell: dict, run_dir: Path) -> TrainConfig:
+    spec = STUDIES[cell["problem"]]
+    return TrainConfig.load(problem=cell["problem"], data=cell["data"], out=str(run_dir),
+                            setup=cell["setup"], mode=cell["mode"], seed=cell["seed"],
+                            **spec[cell["size"]]["train"])
+
+
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Train (resuming from the cell's checkpoint if there is one) and evaluate one model."""
-    spec = STUDIES[cell["problem"]]
-    cfg = TrainConfig.load(problem=cell["problem"], data=cell["data"], out=str(run_dir),
-                           setup=cell["setup"], mode=cell["mode"], seed=cell["seed"],
-                           **spec[cell["size"]]["train"])
-    model = train(cfg, resume=True, progress=False)
-    metrics = evaluate(model, datamod.load(cell["data"]), spec["horizon"], DTYPES[cfg.dtype],
-                       run_dir)
+    cfg = _config(cell, run_dir)
+    return _row(cell, cfg, train(cfg, resume=True, progress=False), run_dir)
+
+
+def pack(cells: list[dict]) -> list[list[dict]]:
+    """Ensembles: the cells that differ only in the seed."""
+    groups: dict[tuple, list[dict]] = {}
+    for c in cells:
+        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", "seed"))
+        groups.setdefault(key, []).append(c)
+    return list(groups.values())
+
+
+def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
+    """Train (resuming where they have checkpoints) the cells' models as one ensemble, then
+    evaluate each; returns their rows."""
+    cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
+    models = train_ensemble(cfgs, resume=True, progress=False)
+    return [_row(*args) for args in zip(cells, cfgs, models, run_dirs)]
+
+
+def _row(cell: dict, cfg: TrainConfig, model, run_dir: Path) -> dict:
+    metrics = evaluate(model, datamod.load(cell["data"]), STUDIES[cell["problem"]]["horizon"],
+                       DTYPES[cfg.dtype], run_dir)
     loss, skipped = _history(run_dir)
     return {**cell, "model": describe(model), **metrics,
             # the level training settled at, and how many updates the spike cutoff dropped
@@ -240,4 +267,6 @@ for _problem, _spec in STUDIES.items():
         run_cell=run_cell,
         report=partial(_report, _problem),
         prepare=partial(_prepare, _problem),
+        pack=pack,
+        run_group=run_group,
     ))
