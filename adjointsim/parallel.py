@@ -105,7 +105,7 @@ def chunks(batch: int, work_per_row: int, min_rows: int = 1, fixed: bool = False
     (for a kernel whose arithmetic changes with the batch size at that threshold)."""
     # A chunk's own calls stay on its thread (map_chunks runs them serially); a fixed split
     # stays as it is there, or a nested sum would depend on whether the caller ran threads.
-    if getattr(_inside, "active", False) and not fixed:
+    if inside_chunk() and not fixed:
         return [slice(0, batch)]
     most = batch // min_rows if batch >= min_rows else batch
     count = min(most, batch * max(work_per_row, 1) // MIN_CHUNK_WORK,
@@ -116,6 +116,11 @@ def chunks(batch: int, work_per_row: int, min_rows: int = 1, fixed: bool = False
         count = 1 << (count.bit_length() - 1)
     bounds = [batch * i // count for i in range(count + 1)]
     return [slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+
+def inside_chunk() -> bool:
+    """True on a thread that runs one chunk of a split call (its own calls stay on it)."""
+    return getattr(_inside, "active", False)
 
 
 def _pool(size: int) -> ThreadPoolExecutor:
@@ -140,7 +145,7 @@ def map_chunks(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
     A call from inside a chunk (a solver run by another solver's kernel wrapper) runs serially,
     so the pool never waits on itself."""
     size = min(threads(), len(items))
-    if size < 2 or getattr(_inside, "active", False):
+    if size < 2 or inside_chunk():
         return [fn(item) for item in items]
     pool = _pool(size)
     return [f.result() for f in [pool.submit(_run_inside, fn, item) for item in items]]

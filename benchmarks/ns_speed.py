@@ -1,7 +1,7 @@
 """Speed of the 2D Navier–Stokes ETDRK solvers against the exponax figures in peers.md.
 
-    NUMBA_NUM_THREADS=1 python benchmarks/ns_speed.py [--n 128] [--steps 100] [--repeats 7]
-                                                       [--orders 2] [--batch 1] [--cpu]
+    python benchmarks/ns_speed.py [--n 128] [--steps 100] [--repeats 7] [--orders 2]
+                                  [--batch 1] [--threads 1 2] [--cpu]
 
 Kolmogorov reference scene (k_f = 6, Re = 1000, Δt = 0.005·128/n, 2/3 dealiasing), float64,
 started from a developed state. Per step, median / minimum over the repeats of:
@@ -10,9 +10,14 @@ started from a developed state. Per step, median / minimum over the repeats of:
                  reads them (the default path)
   fwd+adj (rec)  forward + vjp(..., trajectory=...): the adjoint recomputes the stages
   numpy          the vectorised NumPy forward of benchmarks/numpy_ref/spectral2d.py
-``--cpu`` measures the thread's CPU time instead of wall time: other processes on a shared
-machine inflate it much less. Targets at 128², batch 1, ETDRK2: forward ≤ 0.43 ms/step and
-forward + adjoint ≤ 1.1 ms/step (exponax: 0.64 and 2.2).
+then (fwd+adj) / forward, the gradient's cost in forwards, and at 128², batch 1, ETDRK2 how many
+times faster than exponax on this kind of machine (0.64 ms/step forward, 2.2 ms/step forward +
+gradient) the forward and the gradient run. ``--threads``: the solver thread counts to run
+(adjointsim.parallel; a batch smaller than the count runs its transforms on the threads, a
+larger one splits its rows over them; NUMBA_NUM_THREADS stays 1). ``--cpu`` measures the
+thread's CPU time instead of wall time: other processes on a shared machine inflate it much
+less, but it misses the work of any other thread, so use it with one thread only. Targets at
+128², batch 1, ETDRK2: forward ≤ 0.43 ms/step and forward + adjoint ≤ 1.1 ms/step.
 """
 
 from __future__ import annotations
@@ -30,7 +35,10 @@ import numpy as np  # noqa: E402
 from numpy_ref.spectral2d import navier_stokes as numpy_rollout  # noqa: E402
 
 import adjointsim.solvers.navier_stokes as ns  # noqa: E402
-from adjointsim import get  # noqa: E402
+from adjointsim import get, parallel  # noqa: E402
+
+#: exponax's KolmogorovFlowVorticity, 128², ETDRK2, batch 1, one CPU core: ms per step
+EXPONAX = {"forward": 0.64, "forward+gradient": 2.2}
 
 
 def timings(fn, repeats: int, clock) -> tuple[float, float]:
@@ -64,18 +72,28 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--orders", type=int, nargs="+", default=[2])
     parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1],
+                        help="solver thread counts to measure, each in turn")
     parser.add_argument("--cpu", action="store_true", help="thread CPU time instead of wall time")
     args = parser.parse_args()
     clock = time.thread_time if args.cpu else time.perf_counter
     print(f"ms/step, median / min ({'CPU' if args.cpu else 'wall'} time)")
-    print(f"{'solver':<12} {'grid':>6} {'B':>3} {'forward':>15} {'fwd+adj':>15} "
-          f"{'fwd+adj (rec)':>15} {'numpy':>15}")
+    print(f"{'solver':<12} {'grid':>6} {'B':>3} {'thr':>3} {'forward':>15} {'fwd+adj':>15} "
+          f"{'fwd+adj (rec)':>15} {'numpy':>15} {'/forward':>8} {'x exponax fwd, grad':>20}")
     for order in args.orders:
         cls = get(f"ns2d-etdrk{order}")
         stepper = cls(n=args.n, nu=1e-3, dt=0.005 * 128 / args.n, forcing_wavenumber=6)
-        cells = measure(stepper, args.batch, args.steps, args.repeats, clock)
-        text = " ".join(f"{med:>7.3f} / {low:<5.3f}" for med, low in cells)
-        print(f"{stepper.name:<12} {args.n:>5}² {args.batch:>3} {text}", flush=True)
+        for threads in args.threads:
+            with parallel.using_threads(threads):
+                cells = measure(stepper, args.batch, args.steps, args.repeats, clock)
+            text = " ".join(f"{med:>7.3f} / {low:<5.3f}" for med, low in cells)
+            ratio = cells[1][0] / cells[0][0]
+            peer = ""
+            if (args.n, args.batch, order) == (128, 1, 2):
+                peer = (f"{EXPONAX['forward'] / cells[0][0]:.2f}, "
+                        f"{EXPONAX['forward+gradient'] / cells[1][0]:.2f}")
+            print(f"{stepper.name:<12} {args.n:>5}² {args.batch:>3} {threads:>3} {text} "
+                  f"{ratio:>8.2f} {peer:>20}", flush=True)
 
 
 if __name__ == "__main__":

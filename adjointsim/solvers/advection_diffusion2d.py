@@ -28,38 +28,40 @@ from ..spectral.fft2d import (
     random_smooth_field,
     rfft2,
     spectrum_zeros,
+    transform_threads,
     wavenumbers,
 )
 from ..stepper import Choice, Range, Stepper
 
 
 @njit(cache=True, nogil=True)
-def advdiff_forward(states, n, ctrl, dt, e):
+def advdiff_forward(states, n, ctrl, dt, e, nthreads):
     nslot, nbatch = states.shape[0], states.shape[1]
     v = spectrum_zeros(e.shape, states)
     for bi in range(nbatch):
-        rfft2(states[0, bi, 0], v)
+        rfft2(states[0, bi, 0], v, nthreads)
         for k in range(n):
             v *= e
-            physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt)
+            physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt, nthreads)
 
 
 @njit(cache=True, nogil=True)
-def advdiff_adjoint(states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, e, kx, ky, k2, weights):
+def advdiff_adjoint(states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, e, kx, ky, k2, weights,
+                    nthreads):
     nbatch, size = states.shape[1], states.shape[-1]
     lam = spectrum_zeros(e.shape, states)
     v = np.zeros_like(lam)
     ec = e.conj()
     scale = dt / (size * size)
     for bi in range(nbatch):
-        rfft2(ubar[bi, 0], lam)
+        rfft2(ubar[bi, 0], lam, nthreads)
         for k in range(states.shape[0] - 1, -1, -1):
             if cbar.shape[0] > 0:
                 c = cbar[k, bi, 0]
-                irfft2(lam, c)
+                irfft2(lam, c, nthreads)
                 c *= dt
             if want_p:
-                rfft2(states[k, bi, 0], v)
+                rfft2(states[k, bi, 0], v, nthreads)
                 for p in range(size):
                     for q in range(e.shape[1]):
                         z = lam[p, q].conjugate() * e[p, q] * v[p, q]
@@ -69,9 +71,9 @@ def advdiff_adjoint(states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, e, kx
                         pbar[2] -= w * k2[p, q] * z.real
             lam *= ec
             if cmap[k] >= 0:
-                rfft2(cot[cmap[k], bi, 0], v)
+                rfft2(cot[cmap[k], bi, 0], v, nthreads)
                 lam += v
-        irfft2(lam, ubar[bi, 0])
+        irfft2(lam, ubar[bi, 0], nthreads)
 
 
 @register
@@ -149,7 +151,8 @@ class AdvectionDiffusion2D(Stepper):
 
     def _forward(self, states, n, ctrl, p):
         e = self.propagator(p).astype(self._cplx(states.dtype))
-        advdiff_forward(states, n, ctrl, states.dtype.type(self.dt), e)
+        advdiff_forward(states, n, ctrl, states.dtype.type(self.dt), e,
+                        transform_threads(states.shape[1]))
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
         real = ubar.dtype
@@ -157,5 +160,5 @@ class AdvectionDiffusion2D(Stepper):
         advdiff_adjoint(
             states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, real.type(self.dt), e,
             self._dk[0].astype(real), self._dk[1].astype(real), self.k2.astype(real),
-            hermitian_weights(self.n),
+            hermitian_weights(self.n), transform_threads(states.shape[1]),
         )

@@ -12,7 +12,8 @@ result, so the quadratic products alias only onto discarded modes; dealias=False
 constant forcing rides in N (every ETDRK order integrates a constant N exactly).
 Discrete: ETDRK1–4 (:mod:`adjointsim.spectral.etdrk`) as an exponential Runge–Kutta tableau on
 v = ℱ(ω_k): X_0 = v, X_i = A_i v + Σ_{j<i} B_ij N(X_j), ω_{k+1} = ℱ⁻¹(A_s v + Σ_j B_sj N(X_j))
-+ Δt c_k (c_k the per-step control). Cost per stage: 3 inverse and 2 forward real FFTs.
++ Δt c_k (c_k the per-step control). Cost per stage: 3 inverse and 2 forward real FFTs; a call
+whose batch is smaller than the solver thread count runs them on the threads (bitwise alike).
 Adjoint (on Hermitian half spectra with the product ⟨·,·⟩_H of :mod:`adjointsim.spectral.fft2d`,
 ℱ⁻¹ is an isometry and multipliers transpose to their conjugates): λ = ℱ(ω̄_{k+1});
 N̄_j = B_sj λ, v̄ = A_s λ; for i = s−1..0: X̄_i = N'(X_i)* N̄_i, v̄ += A_i X̄_i, N̄_j += B_ij X̄_i,
@@ -45,6 +46,7 @@ from ..spectral.fft2d import (
     rfft2,
     rfft2_lowpass,
     spectrum_zeros,
+    transform_threads,
     wavenumbers,
 )
 from ..stepper import Choice, Range, Stepper
@@ -62,7 +64,8 @@ TAPE_BYTES = 1 << 30
 # records every stage's (u, v, ω) for the adjoint.
 @njit(cache=True, nogil=True)
 def ns_forward(
-    states, n, ctrl, dt, a, b, kx, ky, inv_k2, keep, ncols, reuse_omega, fmode, fval, tape
+    states, n, ctrl, dt, a, b, kx, ky, inv_k2, keep, ncols, reuse_omega, fmode, fval, tape,
+    nthreads,
 ):
     nslot, nbatch, size = states.shape[0], states.shape[1], states.shape[-1]
     half = size // 2 + 1
@@ -75,30 +78,31 @@ def ns_forward(
     prod = np.empty((2, size, size), dtype=states.dtype)
     has_tape = tape.shape[0] > 0
     for bi in range(nbatch):
-        rfft2(states[0, bi, 0], v)
+        rfft2(states[0, bi, 0], v, nthreads)
         for k in range(n):
             omega = states[k % nslot, bi, 0]
             for i in range(s):
                 own = not (i == 0 and reuse_omega)
                 f = tape[k, bi, i] if has_tape else phys
-                _stage_fields(a[i], b[i], v, nh, i, spec, f, own, kx, ky, inv_k2, keep, ncols)
+                _stage_fields(a[i], b[i], v, nh, i, spec, f, own, kx, ky, inv_k2, keep, ncols,
+                              nthreads)
                 if not own and has_tape:
                     f[2] = omega
                 _nonlinear(f, f[2] if own else omega, prod, pspec, nh[i], kx, ky, keep, ncols,
-                           fmode, fval)
+                           fmode, fval, nthreads)
             # v ← A_s v + Σ_j B_sj N_j, in place: each entry reads v before writing it.
             for p in range(size):
                 for q in range(half):
                     v[p, q] *= a[s, p, q]
             for j in range(s):
                 _add_product(b[s, j], nh[j], v, keep, ncols)
-            physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt)
+            physical_with_control(v, states[(k + 1) % nslot, bi, 0], ctrl, k, bi, dt, nthreads)
 
 
 @njit(cache=True, nogil=True)
 def ns_adjoint(
     states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, a, b, da, db, kx, ky, inv_k2,
-    keep, ncols, reuse_omega, fmode, fval, fbar, pidx, k2, weights, tape,
+    keep, ncols, reuse_omega, fmode, fval, fbar, pidx, k2, weights, tape, nthreads,
 ):
     m, nbatch, size = states.shape[0], states.shape[1], states.shape[-1]
     half = size // 2 + 1
@@ -117,25 +121,25 @@ def ns_adjoint(
     dldl = np.zeros((size, half)) if want_p else np.zeros((0, 0))
     inu, iforce, idrag = pidx[0], pidx[1], pidx[2]
     for bi in range(nbatch):
-        rfft2(ubar[bi, 0], lam)
+        rfft2(ubar[bi, 0], lam, nthreads)
         for k in range(m - 1, -1, -1):
             if cbar.shape[0] > 0:
                 c = cbar[k, bi, 0]
-                irfft2(lam, c)
+                irfft2(lam, c, nthreads)
                 c *= dt
             fields = tape[k, bi] if has_tape else stages
             if not has_tape:
                 # Recompute the stages of step k; the last stage's N only matters for p̄.
-                rfft2(states[k, bi, 0], v)
+                rfft2(states[k, bi, 0], v, nthreads)
                 for i in range(s):
                     own = not (i == 0 and reuse_omega)
                     if not own:
                         fields[0, 2] = states[k, bi, 0]
                     _stage_fields(a[i], b[i], v, nh, i, spec, fields[i], own, kx, ky, inv_k2,
-                                  keep, ncols)
+                                  keep, ncols, nthreads)
                     if i < s - 1 or want_p:
                         _nonlinear(fields[i], fields[i, 2], prod, pspec, nh[i], kx, ky, keep,
-                                   ncols, fmode, fval)
+                                   ncols, fmode, fval, nthreads)
             # Reverse the output row, then the stages from the last to the first.
             for j in range(s):
                 for p in range(size):
@@ -149,7 +153,7 @@ def ns_adjoint(
                     lam[p, q] *= a[s, p, q]
             for i in range(s - 1, -1, -1):
                 _nonlinear_adjoint(nbar[i], fields[i], spec, pspec, prod, kx, ky, inv_k2, keep,
-                                   ncols)
+                                   ncols, nthreads)
                 if want_p and iforce >= 0:
                     pbar[iforce] += fbar * nbar[i, 0, fmode].real
                 xbar = pspec[0]
@@ -159,9 +163,9 @@ def ns_adjoint(
                 for j in range(i):
                     _add_product(b[i, j], xbar, nbar[j], keep, ncols)
             if cmap[k] >= 0:
-                rfft2(cot[cmap[k], bi, 0], v)
+                rfft2(cot[cmap[k], bi, 0], v, nthreads)
                 lam += v
-        irfft2(lam, ubar[bi, 0])
+        irfft2(lam, ubar[bi, 0], nthreads)
     if want_p:
         # ⟨X̄, dX/dL ∂L/∂p⟩_H with ∂L/∂ν = −|k|², ∂L/∂μ = −1.
         for p in range(size):
@@ -180,25 +184,25 @@ def _i_times(k, z):
 
 
 @njit(cache=True, nogil=True)
-def _transform_back(spec, phys, ncols):
+def _transform_back(spec, phys, ncols, nthreads):
     """phys = irfft2(spec) for spec zero in the columns ≥ ncols; may destroy spec."""
     if ncols < spec.shape[-1]:
-        irfft2_lowpass(spec, phys, ncols - 1)
+        irfft2_lowpass(spec, phys, ncols - 1, nthreads)
     else:
-        irfft2(spec, phys)
+        irfft2(spec, phys, nthreads)
 
 
 @njit(cache=True, nogil=True)
-def _transform(phys, spec, ncols):
+def _transform(phys, spec, ncols, nthreads):
     """spec = rfft2(phys) in the columns < ncols."""
     if ncols < spec.shape[-1]:
-        rfft2_lowpass(phys, spec, ncols - 1)
+        rfft2_lowpass(phys, spec, ncols - 1, nthreads)
     else:
-        rfft2(phys, spec)
+        rfft2(phys, spec, nthreads)
 
 
 @njit(cache=True, nogil=True)
-def _stage_fields(a, b, v, nh, i, spec, phys, own, kx, ky, inv_k2, keep, ncols):
+def _stage_fields(a, b, v, nh, i, spec, phys, own, kx, ky, inv_k2, keep, ncols, nthreads):
     """phys = (u, v, ω) of the masked stage value X_i = A_i v + Σ_{j<i} B_ij N_j (ω if own)."""
     size = v.shape[0]
     for p in range(size):
@@ -215,18 +219,18 @@ def _stage_fields(a, b, v, nh, i, spec, phys, own, kx, ky, inv_k2, keep, ncols):
             spec[1, p, q] = _i_times(-kx_p, psi)
             spec[2, p, q] = x
     nf = 3 if own else 2
-    _transform_back(spec[:nf], phys[:nf], ncols)
+    _transform_back(spec[:nf], phys[:nf], ncols, nthreads)
 
 
 @njit(cache=True, nogil=True)
-def _nonlinear(phys, omega, prod, pspec, out, kx, ky, keep, ncols, fmode, fval):
+def _nonlinear(phys, omega, prod, pspec, out, kx, ky, keep, ncols, fmode, fval, nthreads):
     """out = −m ⊙ (i k_x ℱ(u ω) + i k_y ℱ(v ω)) + a F̂ on the kept region; (u, v) = phys[:2]."""
     size = omega.shape[0]
     for p in range(size):
         for q in range(size):
             prod[0, p, q] = phys[0, p, q] * omega[p, q]
             prod[1, p, q] = phys[1, p, q] * omega[p, q]
-    _transform(prod[:2], pspec[:2], ncols)
+    _transform(prod[:2], pspec[:2], ncols, nthreads)
     for p in range(size):
         if keep[p]:
             kx_p = kx[p]
@@ -237,7 +241,7 @@ def _nonlinear(phys, omega, prod, pspec, out, kx, ky, keep, ncols, fmode, fval):
 
 
 @njit(cache=True, nogil=True)
-def _nonlinear_adjoint(nbar, fields, spec, pspec, prod, kx, ky, inv_k2, keep, ncols):
+def _nonlinear_adjoint(nbar, fields, spec, pspec, prod, kx, ky, inv_k2, keep, ncols, nthreads):
     """pspec[0] = N'(X)* nbar on the kept region, for the stage whose (u, v, ω) are ``fields``.
 
     With a = ℱ⁻¹(m i k_x N̄), b = ℱ⁻¹(m i k_y N̄): m (ℱ(a u + b v) + |k|⁻²(i k_x ℱ(b ω) −
@@ -252,14 +256,14 @@ def _nonlinear_adjoint(nbar, fields, spec, pspec, prod, kx, ky, inv_k2, keep, nc
         for q in range(ncols):
             spec[0, p, q] = _i_times(kx_p, nbar[p, q])
             spec[1, p, q] = _i_times(ky[q], nbar[p, q])
-    _transform_back(spec[:2], prod[:2], ncols)
+    _transform_back(spec[:2], prod[:2], ncols, nthreads)
     for p in range(size):
         for q in range(size):
             ga, gb = prod[0, p, q], prod[1, p, q]
             prod[0, p, q] = ga * fields[0, p, q] + gb * fields[1, p, q]
             prod[1, p, q] = ga * fields[2, p, q]
             prod[2, p, q] = gb * fields[2, p, q]
-    _transform(prod, pspec, ncols)
+    _transform(prod, pspec, ncols, nthreads)
     for p in range(size):
         if keep[p]:
             kx_p = kx[p]
@@ -508,7 +512,8 @@ class NavierStokes2D(Stepper):
 
     def _forward(self, states, n, ctrl, p, record=False):
         tape = self._new_tape(states, n, record)
-        ns_forward(states, n, ctrl, *self._args(p, states.dtype), tape)
+        ns_forward(states, n, ctrl, *self._args(p, states.dtype), tape,
+                   transform_threads(states.shape[1]))
         return tape if tape.shape[0] else None
 
     def _new_tape(self, states: np.ndarray, n: int, record: bool) -> np.ndarray:
@@ -534,7 +539,7 @@ class NavierStokes2D(Stepper):
         ns_adjoint(
             states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, a, b, da, db, kx, ky,
             inv_k2, keep, ncols, reuse, fmode, fval, fbar, self._pidx, self.k2,
-            hermitian_weights(self.n), tape,
+            hermitian_weights(self.n), tape, transform_threads(states.shape[1]),
         )
 
 

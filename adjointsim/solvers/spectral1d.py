@@ -19,9 +19,12 @@ Adjoint:     the stages in reverse: x̄_q += conj(C_q) ⊙ ȳ_s, and through Y: 
 
 Cost: the forward keeps the spectral state between frames (an ETDRK4 step is 8 real FFTs);
 under :meth:`Stepper.vjp` it records the stages' physical values on a tape, so the adjoint
-step costs 9 FFTs without recomputation (it recomputes the step instead when the tape would
-exceed ``TAPE_BYTES``, or when parameter cotangents need the spectral stages), and it keeps the
-cotangent spectral between frames unless the physical one is needed.
+step costs the same 8 FFTs without recomputation (it recomputes the step instead when the tape
+would exceed ``TAPE_BYTES``, or when parameter cotangents need the spectral stages), and it
+keeps the cotangent spectral between frames unless the physical one is needed (one FFT more
+per frame). Where the packed layout is the states' own (one signal, or the library FFTs), the
+stored states serve as the packed input and output of a step without copies. Forward +
+gradient of a rollout costs about 2.1–2.4 forwards (``benchmarks/ks_speed.py``).
 """
 
 from __future__ import annotations
@@ -76,7 +79,8 @@ def etdrk_forward(states, n, ctrl, dt, substeps, tgt, start, src, coef, rot, dco
     """Frames k < n: states[(k + 1) % S] from states[k % S]. A substep's physical stage values
     go to rows 1..3 of its ``ph`` block and its output's to row 0 (the next substep's input);
     with a tape (shape (n, substeps, rows, packed)) the blocks are the tape's, except for the
-    last substep's output, which the adjoint re-packs from the stored state."""
+    last substep's output, which the adjoint re-packs from the stored state. ``states`` is
+    C-contiguous (its rows are viewed as packed arrays where :func:`fft1d.direct`)."""
     ns, nb, npts = states.shape[0], states.shape[1], states.shape[3]
     m = npts // 2
     cdt = fplan[1].dtype
@@ -89,6 +93,8 @@ def etdrk_forward(states, n, ctrl, dt, substeps, tgt, start, src, coef, rot, dco
     has_tape = tape.shape[0] > 0
     cur = 0
     zv = zin
+    # Where the packed layout is the states' own, an emitted output goes straight to its slot.
+    direct = fft1d.direct(nb)
     for k in range(n):
         if k == 0 or ctrl.shape[0] > 0:
             # Otherwise the previous frame left v and its physical values in place.
@@ -103,13 +109,16 @@ def etdrk_forward(states, n, ctrl, dt, substeps, tgt, start, src, coef, rot, dco
             last = s == substeps - 1
             ph = tape[k, s] if has_tape else loc[g % 2]
             out_z = loc[g % 2, 0] if last and has_tape else ph[0]
+            if last and emit and direct:
+                out_z = fft1d.packed_view(states[(k + 1) % ns], cdt)
             _substep(tgt, start, src, coef, rot, dconst, st[cur], zv, ph, st[1 - cur, V], out_z,
                      nonlinear or (last and emit), False, empty, t, w, nb, fplan, nonlinear)
             zv = out_z
             cur = 1 - cur
         if emit:
             out = states[(k + 1) % ns, :, 0, :]
-            fft1d.unpack(zv, out, consts)
+            if not direct:
+                fft1d.unpack(zv, out, consts)
             if ctrl.shape[0] > 0:
                 out += dt * ctrl[k, :, 0, :]
 
@@ -134,6 +143,7 @@ def etdrk_adjoint(states, ctrl, cot, cmap, ubar, cbar, dt, substeps, tgt, start,
     t, w = np.empty(m * nb, cdt), np.empty((m + 1) * nb, cdt)
     empty = np.empty(0, cdt)
     two, zero = consts[3], consts[0] - consts[0]
+    direct = fft1d.direct(nb)
     carried = False  # ob already holds the spectral cotangent of the frame's output
     # The reverse sweep reads the stages' physical values, the parameter cotangents their
     # spectra; ETD1 with one substep needs neither (its input is the stored state).
@@ -142,7 +152,9 @@ def etdrk_adjoint(states, ctrl, cot, cmap, ubar, cbar, dt, substeps, tgt, start,
         ub = ubar[:, 0, :]
         if cbar.shape[0] > 0:
             cbar[k] = dt * ubar
-        if nonlinear or recompute:
+        if (nonlinear or recompute) and direct:
+            zin = fft1d.packed_view(states[k], cdt)
+        elif nonlinear or recompute:
             fft1d.pack(states[k, :, 0, :], zin, consts)
         if recompute:
             fft1d.rfft_packed(zin, zin, 0, st[0, V], empty, empty, False, t, w, nb, fplan)
@@ -280,17 +292,7 @@ def _substep_adjoint(tgt, start, src, coef, rot, dconst, st, ph, sb, ob, want_p,
         for q in range(q0, q1):
             first[q - q0] = not touched[src[q]]
             touched[src[q]] = True
-        nk = coef.shape[1]
-        if fft1d.at(1, 0, nk, nb) == 1:
-            for b in range(nb):
-                for q in range(q0, q1):
-                    _axpy_adjoint(sb, src[q], b * nk, ybar, coef, q, 0, nk, 1, rot[q],
-                                  first[q - q0])
-        else:
-            for k in range(nk):
-                for q in range(q0, q1):
-                    _axpy_adjoint(sb, src[q], k * nb, ybar, coef, q, k, nb, 0, rot[q],
-                                  first[q - q0])
+        _combine_adjoint(sb, ybar, coef, rot, q0, q1, src, first, nb)
         if want_p:
             for q in range(q0, q1):
                 x = src[q]
@@ -300,6 +302,22 @@ def _substep_adjoint(tgt, start, src, coef, rot, dconst, st, ph, sb, ob, want_p,
                         i = fft1d.at(k, b, coef.shape[1], nb)
                         acc += ybar[i].conjugate() * st[x, i]
                     chat[q, k] += acc
+
+
+@njit(cache=True, nogil=True)
+def _combine_adjoint(sb, ybar, coef, rot, q0, q1, src, first, nb):
+    """sb[src[q]] (+)= conj((i if rot[q]) coef[q]) ⊙ ybar for q0 ≤ q < q1, assigning where
+    ``first[q − q0]``: the transpose of :func:`_combine`. A function of its own, as
+    :func:`_combine` is: inlined into the stage loop, these loops ran several times slower."""
+    nk = coef.shape[1]
+    if fft1d.at(1, 0, nk, nb) == 1:
+        for b in range(nb):
+            for q in range(q0, q1):
+                _axpy_adjoint(sb, src[q], b * nk, ybar, coef, q, 0, nk, 1, rot[q], first[q - q0])
+        return
+    for k in range(nk):
+        for q in range(q0, q1):
+            _axpy_adjoint(sb, src[q], k * nb, ybar, coef, q, k, nb, 0, rot[q], first[q - q0])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -517,8 +535,8 @@ class ETDRKScene1D(Stepper):
         tgt, _, src, _, terms, kept = self._tableau
         chat = np.zeros((len(src), len(self.k)), dtype=np.complex128)
         fsum = np.zeros((len(tgt), len(self.k)), dtype=np.complex128)
-        etdrk_adjoint(states.astype(dtype, copy=False), ctrl, cot, cmap, ubar, cbar, *args, tape,
-                      want_p, chat, fsum)
+        states = np.ascontiguousarray(states, dtype=dtype)
+        etdrk_adjoint(states, ctrl, cot, cmap, ubar, cbar, *args, tape, want_p, chat, fsum)
         if recorded is not None and recorded.base.nbytes <= TAPE_KEEP_BYTES:
             self._tape_buffer = recorded.base  # no page faults for the next vjp's tape
         if want_p:

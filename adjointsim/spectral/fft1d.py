@@ -42,9 +42,10 @@ import rocket_fft  # noqa: F401  (registers the DUCC0 transforms for numba)
 from numba import njit
 from rocket_fft import c2r, r2c
 
-#: batch size from which the real FFTs call DUCC0 instead of the Stockham loops
-#: (measured crossover for N = 128 on this machine: about 8-16 signals)
-LIBRARY_BATCH = 12
+#: batch size from which the real FFTs call DUCC0 instead of the Stockham loops. The crossover
+#: of a whole ETDRK4 step, forward or adjoint, falls with N: near 2 signals for N = 128 to 256,
+#: 4 to 8 for N = 48 to 64, above 32 for N = 32; 4 suits the grids of 48 points and more.
+LIBRARY_BATCH = 4
 
 Plan = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
@@ -217,6 +218,20 @@ def library(nb):
     return nb >= LIBRARY_BATCH
 
 
+@njit(cache=True, nogil=True)
+def direct(nb):
+    """True when a packed array of ``nb`` signals is their (nb, N) rows, viewed as complex:
+    one signal, or the library path."""
+    return nb == 1 or library(nb)
+
+
+@njit(cache=True, nogil=True)
+def packed_view(u, cdtype):
+    """The C-contiguous signals ``u`` (any shape, the signal axis last) as a packed complex
+    array without a copy: valid only where :func:`direct` holds."""
+    return u.reshape(u.size).view(cdtype)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def at(k, b, nk, nb):
     """Position of mode k of signal b in a half spectrum of nk modes: batch-major (b·nk + k)
@@ -282,6 +297,11 @@ def rfft_packed(src, other, mode, out, mult, add, acc, t, w, nb, fplan):
         r2c(t.view(consts.dtype).reshape(nb, 2 * m), (out if direct else w).reshape(nb, m + 1),
             np.ones(1, np.int64), True, 1.0, 1)
         if direct:
+            return
+        if acc and not (have_mult or have_add):
+            # A loop of its own: with the branches below inside it, it would not vectorise.
+            for i in range((m + 1) * nb):
+                out[i] += w[i]
             return
         for b in range(nb):
             lo = b * (m + 1)

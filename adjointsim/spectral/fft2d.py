@@ -6,11 +6,15 @@ FFT order along axis −2 and k_y = q ≥ 0 along axis −1 (numpy's ``rfft2`` c
 forward transform, 1/n² on the inverse). Only even n is supported.
 
 The transforms are rocket-fft's DUCC kernels through ``rocket_fft.lowlevel``, which write into
-caller-owned arrays, so the solvers' time loops allocate nothing. Measured here (128², float64,
-one thread, CPU time): r2c 28 µs and c2r 31 µs, against 31 and 36 µs for numpy.fft.rfft2 /
-irfft2 called inside njit (rocket-fft's overloads allocate their result) and 63 µs for
-numpy.fft.rfft2 from Python; the "lowpass" variants below, which skip the transforms of the
-k_y columns above a cutoff (2/3 rule: 43 of 65), take 23–25 µs.
+caller-owned arrays, so the solvers' time loops allocate nothing. Each takes ``nthreads``: DUCC
+splits a transform over its independent lines, each line's arithmetic unchanged, so the result
+is the same to the bit on any number of threads; the 2D spectral steppers give a call's
+transforms every solver thread when its batch is smaller than the thread count
+(:func:`transform_threads`). Measured here (128², float64, one thread, CPU time): r2c 28 µs
+and c2r 31 µs, against 31 and 36 µs for numpy.fft.rfft2 / irfft2 called inside njit
+(rocket-fft's overloads allocate their result) and 63 µs for numpy.fft.rfft2 from Python; the
+"lowpass" variants below, which skip the transforms of the k_y columns above a cutoff (2/3
+rule: 43 of 65), take 23–25 µs.
 
 Adjoints (Euclidean inner products; complex arrays as pairs of reals, ⟨A, B⟩ = Re Σ conj(A) B).
 Let c_q = 1 for the k_y = 0 and Nyquist columns and 2 otherwise. For any complex X (Hermitian or
@@ -39,6 +43,8 @@ import rocket_fft  # noqa: F401  (registers numpy.fft/scipy.fft for numba, loads
 from numba import njit
 from rocket_fft import lowlevel
 
+from .. import parallel
+
 __all__ = [
     "apply_multiplier",
     "dealias_cutoff",
@@ -57,6 +63,7 @@ __all__ = [
     "rfft2_adjoint",
     "rfft2_lowpass",
     "spectrum_zeros",
+    "transform_threads",
     "wavenumbers",
 ]
 
@@ -143,39 +150,52 @@ def _last_two(a):
 
 
 @njit(cache=True, nogil=True)
-def rfft2(x, out):
-    """out = rfft2(x) over the last two axes; x (..., n, n) real, out (..., n, n//2+1) complex."""
-    lowlevel.r2c(x, out, _last_two(x), True, 1.0, 1)
+def rfft2(x, out, nthreads):
+    """out = rfft2(x) over the last two axes; x (..., n, n) real, out (..., n, n//2+1) complex.
+    ``nthreads``: DUCC's threads for this one call (see :func:`transform_threads`)."""
+    lowlevel.r2c(x, out, _last_two(x), True, 1.0, nthreads)
 
 
 @njit(cache=True, nogil=True)
-def irfft2(xh, out):
+def irfft2(xh, out, nthreads):
     """out = irfft2(xh) (with the 1/n² factor); out (..., n, n) real sets the length. Keeps xh."""
     n = out.shape[-1]
-    lowlevel.c2r(xh, out, _last_two(xh), False, 1.0 / (n * n), 1)
+    lowlevel.c2r(xh, out, _last_two(xh), False, 1.0 / (n * n), nthreads)
 
 
 @njit(cache=True, nogil=True)
-def rfft2_lowpass(x, out, cutoff):
+def rfft2_lowpass(x, out, cutoff, nthreads):
     """rfft2 for the columns k_y ≤ ``cutoff`` only; used when a 2/3 mask follows the transform.
 
     The columns of ``out`` above the cutoff are left holding the transforms along y alone.
     """
     ax = np.array([x.ndim - 1])
-    lowlevel.r2c(x, out, ax, True, 1.0, 1)
-    lowlevel.c2c(out[..., : cutoff + 1], out[..., : cutoff + 1], ax - 1, True, 1.0, 1)
+    lowlevel.r2c(x, out, ax, True, 1.0, nthreads)
+    lowlevel.c2c(out[..., : cutoff + 1], out[..., : cutoff + 1], ax - 1, True, 1.0, nthreads)
 
 
 @njit(cache=True, nogil=True)
-def irfft2_lowpass(xh, out, cutoff):
+def irfft2_lowpass(xh, out, cutoff, nthreads):
     """irfft2 of a spectrum whose columns k_y > ``cutoff`` are zero, skipping their transforms.
 
     Transforms the columns k_y ≤ ``cutoff`` of ``xh`` in place, so it destroys them.
     """
     n = out.shape[-1]
     ax = np.array([xh.ndim - 1])
-    lowlevel.c2c(xh[..., : cutoff + 1], xh[..., : cutoff + 1], ax - 1, False, 1.0, 1)
-    lowlevel.c2r(xh, out, ax, False, 1.0 / (n * n), 1)
+    lowlevel.c2c(xh[..., : cutoff + 1], xh[..., : cutoff + 1], ax - 1, False, 1.0, nthreads)
+    lowlevel.c2r(xh, out, ax, False, 1.0 / (n * n), nthreads)
+
+
+def transform_threads(batch: int) -> int:
+    """DUCC threads for the transforms of a kernel call over ``batch`` rows: every solver thread
+    (:func:`adjointsim.parallel.threads`) for a call with fewer rows than threads that is not
+    itself one chunk of a split call, else 1 (the split of the rows uses the threads then).
+
+    DUCC splits a transform over its independent lines, each line's arithmetic unchanged, so
+    the results are the same to the bit for every count; it also keeps small grids on one
+    thread by itself."""
+    count = parallel.threads()
+    return 1 if batch >= count or parallel.inside_chunk() else count
 
 
 @njit(cache=True, nogil=True)
@@ -218,10 +238,10 @@ def apply_multiplier(x: np.ndarray, mult: np.ndarray) -> np.ndarray:
     x = np.ascontiguousarray(x)
     n = x.shape[-1]
     spec = _spectrum_like(x, n)
-    rfft2(x, spec)
+    rfft2(x, spec, 1)
     spec *= mult.astype(spec.dtype)
     out = np.empty_like(x)
-    irfft2(spec, out)
+    irfft2(spec, out, 1)
     return out
 
 
@@ -236,7 +256,7 @@ def resample(x: np.ndarray, m: int) -> np.ndarray:
     n = x.shape[-1]
     _check_even(m)
     src = _spectrum_like(x, n)
-    rfft2(x, src)
+    rfft2(x, src, 1)
     dst = np.zeros((*x.shape[:-2], m, m // 2 + 1), dtype=src.dtype)
     half = min(n, m) // 2
     dst[..., :half, :half] = src[..., :half, :half]
@@ -258,13 +278,13 @@ def _irfft2_scaled(xh, out, fct):
 
 
 @njit(cache=True, nogil=True)
-def physical_with_control(v, out, ctrl, k, b, dt):
+def physical_with_control(v, out, ctrl, k, b, dt, nthreads):
     """out = irfft2(v) + Δt ctrl[k, b, 0], and v = rfft2(out) again when a control was added:
     the end of a controlled spectral step, shared by the 2D spectral steppers."""
-    irfft2(v, out)
+    irfft2(v, out, nthreads)
     if ctrl.shape[0] > 0:
         c = ctrl[k, b, 0]
         for p in range(out.shape[0]):
             for q in range(out.shape[1]):
                 out[p, q] += dt * c[p, q]
-        rfft2(out, v)
+        rfft2(out, v, nthreads)

@@ -34,8 +34,8 @@ def test_transforms_match_numpy_and_their_adjoints_pass_the_dot_test(n, rng):
     # Arbitrary, non-Hermitian half spectra: the adjoints must hold on all of them.
     xh = rng.standard_normal((2, 3, n, m)) + 1j * rng.standard_normal((2, 3, n, m))
     fx, gx = np.empty_like(xh), np.empty_like(x)
-    fft2d.rfft2(x, fx)
-    fft2d.irfft2(xh, gx)
+    fft2d.rfft2(x, fx, 1)
+    fft2d.irfft2(xh, gx, 1)
     np.testing.assert_allclose(fx, np.fft.rfft2(x), atol=1e-12)
     np.testing.assert_allclose(gx, np.fft.irfft2(xh, s=(n, n)), atol=1e-14)
     ft, gt = np.empty_like(x), np.empty_like(xh)
@@ -112,13 +112,13 @@ def test_lowpass_transforms_equal_the_full_ones_on_their_columns(n, rng):
     cut = fft2d.dealias_cutoff(n)
     x = rng.standard_normal((3, n, n))
     out = np.empty((3, n, n // 2 + 1), dtype=complex)
-    fft2d.rfft2_lowpass(x, out, cut)
+    fft2d.rfft2_lowpass(x, out, cut, 1)
     np.testing.assert_allclose(out[..., : cut + 1], np.fft.rfft2(x)[..., : cut + 1], atol=1e-12)
     xh = np.fft.rfft2(x)
     xh[..., cut + 1 :] = 0.0
     expected = np.fft.irfft2(xh, s=(n, n))
     back = np.empty_like(x)
-    fft2d.irfft2_lowpass(xh, back, cut)
+    fft2d.irfft2_lowpass(xh, back, cut, 1)
     np.testing.assert_allclose(back, expected, atol=1e-14)
 
 
@@ -156,8 +156,41 @@ def test_float32_stays_float32(rng):
     assert fft2d.apply_multiplier(x, fft2d.laplacian_multiplier(16)).dtype == np.float32
     out = fft2d.spectrum_zeros((2, 16, 9), x)
     assert out.dtype == np.complex64
-    fft2d.rfft2(x, out)
+    fft2d.rfft2(x, out, 1)
     np.testing.assert_allclose(out, np.fft.rfft2(x), rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("n", (12, 128))
+def test_transforms_on_several_threads_are_bitwise_those_on_one(n, rng):
+    x = rng.standard_normal((n, n))
+    cut = fft2d.dealias_cutoff(n)
+    results = []
+    for nthreads in (1, 2, 3):
+        full = fft2d.spectrum_zeros((n, n // 2 + 1), x)
+        low = np.zeros_like(full)
+        back, back_low = np.empty_like(x), np.empty_like(x)
+        fft2d.rfft2(x, full, nthreads)
+        fft2d.rfft2_lowpass(x, low, cut, nthreads)
+        fft2d.irfft2(full, back, nthreads)
+        masked = full.copy()
+        masked[:, cut + 1 :] = 0.0
+        fft2d.irfft2_lowpass(masked, back_low, cut, nthreads)
+        results.append((full, low, back, back_low))
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_transform_threads_go_to_calls_smaller_than_the_thread_count():
+    from adjointsim import parallel
+
+    with parallel.using_threads(1):
+        assert fft2d.transform_threads(1) == 1
+    with parallel.using_threads(4):
+        assert [fft2d.transform_threads(b) for b in (1, 3, 4, 16)] == [4, 4, 1, 1]
+        # Inside one chunk of a split call the split already uses the threads.
+        inner = parallel.map_chunks(lambda b: fft2d.transform_threads(b), [1, 1])
+        assert inner == [1, 1]
 
 
 def test_odd_grids_are_rejected():

@@ -66,6 +66,29 @@ def test_taped_adjoint_equals_the_recomputing_one():
         np.testing.assert_allclose(nested.state, taped.state, rtol=1e-11, atol=1e-13)
 
 
+@pytest.mark.parametrize("name", ("ns2d-etdrk2", "advdiff2d-etdrk4"))
+def test_batch_one_on_two_threads_is_bitwise_the_one_thread_result(name):
+    """At batch 1 the transforms run on the solver threads: nothing may change a bit."""
+    from adjointsim import parallel
+
+    kw = dict(nu=1e-3, dt=0.005, forcing_wavenumber=6) if name.startswith("ns2d") else {}
+    stepper = get(name)(n=128, **kw)
+    rng = np.random.default_rng(3)
+    u0 = stepper.random_state(rng, 1)
+    cot = rng.standard_normal(u0.shape)
+    ctrl = 0.1 * rng.standard_normal((3, 1, *stepper.control_shape))
+    runs = []
+    for threads in (1, 2):
+        with parallel.using_threads(threads):
+            traj = stepper.rollout(u0, 3, ctrl, keep="all")
+            taped = stepper.vjp(u0, 3, cot)
+            full = stepper.vjp(u0, 3, cot, ctrl, wrt_params=True, trajectory=traj)
+            params = np.array(list(full.params.values()))
+            runs.append((traj, taped.state, full.state, full.controls, params))
+    for a, b in zip(*runs):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_velocity_adjoint_dot_test():
     stepper = ns(2, n=16)
     rng = np.random.default_rng(8)
