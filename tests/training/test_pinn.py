@@ -240,9 +240,10 @@ def test_help_says_what_0_means_and_lists_the_choices(capsys, monkeypatch):
         cli(["pinn", "--help"])
     assert e.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    assert "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000)" in text
-    assert "0: the problem's (poisson 50, sobolev 64, ks-inverse 50)" in text
-    for choices in ("{poisson,sobolev,ks-inverse}", "{res,max}", "{taylor,autograd}",
+    assert ("0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000, sequential 3000)"
+            in text)
+    assert "0: the problem's (poisson 50, sobolev 64, ks-inverse 50, sequential 50)" in text
+    for choices in ("{poisson,sobolev,ks-inverse,sequential}", "{res,max}", "{taylor,autograd}",
                     "{uniform,epsilon-optimal,inverse-dirichlet,max-avg,mgda,gradnorm,softadapt,"
                     "relobralo,ntk,pcgrad,config,id,maxavg,analytic,fixed}"):
         assert choices in text
