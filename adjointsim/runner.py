@@ -79,10 +79,10 @@ class Study:
     read back or reused; without it, a reused row must hold what the other rows of cells with
     the same configuration keys all hold, with values of the same kind.
 
-    ``pack(cells)`` (with ``run_group``): groups of cells that train together as one ensemble
-    (cells that differ only in the seed, say); the runner submits one task per group, and
-    ``run_group(cells, run_dirs)`` returns their rows in order. A group with finished cells
-    runs only the others; each cell still gets its own row file."""
+    ``pack`` (with ``run_group``): the keys in which cells may differ and still train together
+    as one ensemble (``("seed",)``, say); the runner submits one task per group of cells equal
+    in every other key, and ``run_group(cells, run_dirs)`` returns their rows in order. A group
+    with finished cells runs only the others; each cell still gets its own row file."""
 
     name: str
     sizes: tuple[str, ...]
@@ -91,7 +91,7 @@ class Study:
     report: Callable[[list[dict], Path], str]
     prepare: Callable[[str, Path], dict] | None = None
     row_keys: RowKeys | Callable[[dict], RowKeys] | None = None
-    pack: Callable[[list[dict]], list[list[dict]]] | None = None
+    pack: tuple[str, ...] = ()
     run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
 
     def expected_keys(self, cell: dict) -> RowKeys | None:
@@ -515,9 +515,13 @@ def execute_group(run_group: Callable[[list[dict], list[Path]], list[dict]], cel
 
 def _tasks(study: Study, todo: list[dict], out: Path) -> list[tuple[list[dict], Callable, tuple]]:
     """What to submit: per cell, or per group where the study packs cells."""
-    if study.pack is None:
+    if not study.pack:
         return [([c], execute, (study.run_cell, c, str(out / c["id"]))) for c in todo]
-    return [(g, execute_group, (study.run_group, g, str(out))) for g in study.pack(todo)]
+    groups: dict[tuple, list[dict]] = {}
+    for c in todo:
+        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", *study.pack))
+        groups.setdefault(key, []).append(c)
+    return [(g, execute_group, (study.run_group, g, str(out))) for g in groups.values()]
 
 
 def _one_line(exc: BaseException) -> str:

@@ -61,3 +61,20 @@ def report(rows: list[dict], out: Path) -> str:
 
 
 register_study(Study("runner-test", ("tiny", "ok"), cells, run_cell, report))
+
+
+def packed_cells(size: str, seeds: int | None) -> list[dict]:
+    """Two kinds × ``seeds`` seeds: cells of one kind train as one group."""
+    n = 3 if seeds is None else seeds
+    return [{"id": f"{kind}-{k}", "kind": kind, "seed": k} for kind in ("a", "b") for k in range(n)]
+
+
+def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
+    with open(run_dirs[0].parent / "calls.log", "a") as log:
+        log.write(" ".join(c["id"] for c in cells) + "\n")
+    return [{"pid": os.getpid(), "value": float(c["seed"]), "members": len(cells)}
+            for c in cells]
+
+
+register_study(Study("runner-packed", ("ok",), packed_cells, run_cell, report,
+                     pack=("seed",), run_group=run_group))

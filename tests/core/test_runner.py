@@ -388,3 +388,18 @@ def test_a_study_may_declare_its_row_keys(row_keys, tmp_path, capsys):
     assert (f"{out / 'ok-0' / 'row.json'} is damaged (holds [1.0] under 'value', not a "
             "float); delete it to run that cell again" in capsys.readouterr().err)
     assert _calls(out) == calls
+
+
+def test_a_packed_study_runs_one_task_per_group_and_only_the_unfinished_members(tmp_path):
+    """Cells equal but in the pack keys go to run_group together; each still gets its row
+    file, and a rerun with more seeds trains only the new members, as one group per kind."""
+    out = tmp_path / "study"
+    runner.run("runner-packed", out, "ok", 2, cluster="none", progress=False)
+    assert _calls(out) == ["a-0 a-1", "b-0 b-1"]
+    rows = {r["id"]: r for r in json.loads((out / "rows.json").read_text())}
+    assert rows["b-1"] == {"id": "b-1", "kind": "b", "seed": 1, "pid": os.getpid(), "value": 1.0,
+                           "members": 2}
+    assert all((out / i / "row.json").exists() for i in rows)
+    runner.run("runner-packed", out, "ok", 3, cluster="none", progress=False)
+    assert _calls(out)[2:] == ["a-2", "b-2"]
+    assert json.loads((out / "a-0" / "row.json").read_text())["members"] == 2

@@ -99,15 +99,6 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     return _row(cell, cfg, train(cfg, resume=True, progress=False), run_dir)
 
 
-def pack(cells: list[dict]) -> list[list[dict]]:
-    """Ensembles: the cells that differ only in the seed."""
-    groups: dict[tuple, list[dict]] = {}
-    for c in cells:
-        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", "seed"))
-        groups.setdefault(key, []).append(c)
-    return list(groups.values())
-
-
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     """Train (resuming where they have checkpoints) the cells' models as one ensemble, then
     evaluate each; returns their rows."""
@@ -267,6 +258,6 @@ for _problem, _spec in STUDIES.items():
         run_cell=run_cell,
         report=partial(_report, _problem),
         prepare=partial(_prepare, _problem),
-        pack=pack,
+        pack=("seed",),
         run_group=run_group,
     ))

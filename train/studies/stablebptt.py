@@ -116,15 +116,6 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     return _row(cell, cfg, train_controller(cfg, resume=True, progress=False), run_dir)
 
 
-def pack(cells: list[dict]) -> list[list[dict]]:
-    """Ensembles: the cells that differ only in the seed and the clipping."""
-    groups: dict[tuple, list[dict]] = {}
-    for c in cells:
-        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", "seed", "clip"))
-        groups.setdefault(key, []).append(c)
-    return list(groups.values())
-
-
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     """Train (or resume, or reuse) the cells' controllers as one ensemble; returns their
     rows."""
@@ -279,6 +270,6 @@ register_study(Study(
     cells=cells,
     run_cell=run_cell,
     report=report,
-    pack=pack,
+    pack=("seed", "clip"),
     run_group=run_group,
 ))
