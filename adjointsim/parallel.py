@@ -123,6 +123,18 @@ def inside_chunk() -> bool:
     return getattr(_inside, "active", False)
 
 
+def threads_inside(batch: int) -> int:
+    """Threads for the work inside one sample (the lines of a grid, a transform's lines) of a
+    kernel call over ``batch`` rows: every solver thread (:func:`threads`) for a call with fewer
+    rows than threads that is not itself one chunk of a split call, else 1 (the split of the
+    rows uses the threads then).
+
+    Only work whose arithmetic does not depend on the split goes on these threads (independent
+    lines, never a sum), so the results are the same to the bit for every count."""
+    count = threads()
+    return 1 if batch >= count or inside_chunk() else count
+
+
 def _pool(size: int) -> ThreadPoolExecutor:
     with _lock:
         pool = _pools.get(size)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from .. import validate
+from .. import parallel, validate
 from ..registry import register
 from ..spectral.fft2d import (
     derivative_wavenumbers,
@@ -28,7 +28,6 @@ from ..spectral.fft2d import (
     random_smooth_field,
     rfft2,
     spectrum_zeros,
-    transform_threads,
     wavenumbers,
 )
 from ..stepper import Choice, Range, Stepper
@@ -152,7 +151,7 @@ class AdvectionDiffusion2D(Stepper):
     def _forward(self, states, n, ctrl, p):
         e = self.propagator(p).astype(self._cplx(states.dtype))
         advdiff_forward(states, n, ctrl, states.dtype.type(self.dt), e,
-                        transform_threads(states.shape[1]))
+                        parallel.threads_inside(states.shape[1]))
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
         real = ubar.dtype
@@ -160,5 +159,5 @@ class AdvectionDiffusion2D(Stepper):
         advdiff_adjoint(
             states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, real.type(self.dt), e,
             self._dk[0].astype(real), self._dk[1].astype(real), self.k2.astype(real),
-            hermitian_weights(self.n), transform_threads(states.shape[1]),
+            hermitian_weights(self.n), parallel.threads_inside(states.shape[1]),
         )

@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numba import njit
 
-from .. import validate
+from .. import parallel, validate
 from ..registry import register
 from ..spectral.etdrk import etdrk_coefficient_derivatives, etdrk_coefficients
 from ..spectral.fft2d import (
@@ -46,7 +46,6 @@ from ..spectral.fft2d import (
     rfft2,
     rfft2_lowpass,
     spectrum_zeros,
-    transform_threads,
     wavenumbers,
 )
 from ..stepper import Choice, Range, Stepper
@@ -513,7 +512,7 @@ class NavierStokes2D(Stepper):
     def _forward(self, states, n, ctrl, p, record=False):
         tape = self._new_tape(states, n, record)
         ns_forward(states, n, ctrl, *self._args(p, states.dtype), tape,
-                   transform_threads(states.shape[1]))
+                   parallel.threads_inside(states.shape[1]))
         return tape if tape.shape[0] else None
 
     def _new_tape(self, states: np.ndarray, n: int, record: bool) -> np.ndarray:
@@ -539,7 +538,7 @@ class NavierStokes2D(Stepper):
         ns_adjoint(
             states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, a, b, da, db, kx, ky,
             inv_k2, keep, ncols, reuse, fmode, fval, fbar, self._pidx, self.k2,
-            hermitian_weights(self.n), tape, transform_threads(states.shape[1]),
+            hermitian_weights(self.n), tape, parallel.threads_inside(states.shape[1]),
         )
 
 

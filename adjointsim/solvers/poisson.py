@@ -15,7 +15,11 @@ Adjoint:     −Δ_h + κ is symmetric (and the mean projection commutes with it
              (from A u = f: Ā = −f̄ uᵀ, and ∂A/∂κ = I).
 Transforms:  scipy.fft inside numba through rocket-fft (registered by its numba entry point, no
              import needed). Complex arrays (the complex-step check) transform their real and
-             imaginary parts separately, so the FFT's round-off never mixes the two.
+             imaginary parts separately, so the FFT's round-off never mixes the two. A call
+             whose batch is smaller than the thread count gives its transforms every solver
+             thread (:func:`adjointsim.parallel.threads_inside`); the transforms split over
+             their independent lines, each line's arithmetic unchanged, so the results are the
+             same to the bit for every thread count.
 """
 
 from __future__ import annotations
@@ -25,28 +29,28 @@ import scipy.fft
 from numba import njit, types
 from numba.extending import overload
 
-from .. import validate
+from .. import parallel, validate
 from ..grid import DIRICHLET, boundary_code, spacing
 from ..registry import register
 from ..stepper import Choice, Range, Stepper
 
 
-def _periodic_solve(f, out, symbol):
+def _periodic_solve(f, out, symbol, workers):
     raise NotImplementedError  # numba-only; see the overload below
 
 
 @overload(_periodic_solve)
-def _periodic_solve_impl(f, out, symbol):
+def _periodic_solve_impl(f, out, symbol, workers):
     if not isinstance(f.dtype, types.Complex):
-        return lambda f, out, symbol: _filter(f, out, symbol)
+        return lambda f, out, symbol, workers: _filter(f, out, symbol, workers)
     # Complex step: the FFT's own imaginary unit must not mix the real and imaginary parts
     # (round-off of the real part would swamp a 1e-100 perturbation), so each part takes the
     # real transform and the (complexified) symbol is applied by hand.
 
-    def complex_step(f, out, symbol):
+    def complex_step(f, out, symbol, workers):
         nb, nc, nx, ny = f.shape
-        re = scipy.fft.rfft2(np.ascontiguousarray(f.real))
-        im = scipy.fft.rfft2(np.ascontiguousarray(f.imag))
+        re = scipy.fft.rfft2(np.ascontiguousarray(f.real), workers=workers)
+        im = scipy.fft.rfft2(np.ascontiguousarray(f.imag), workers=workers)
         for b in range(nb):
             for c in range(nc):
                 for i in range(nx):
@@ -55,21 +59,22 @@ def _periodic_solve_impl(f, out, symbol):
                         r, q = re[b, c, i, j], im[b, c, i, j]
                         re[b, c, i, j] = s_re * r - s_im * q
                         im[b, c, i, j] = s_re * q + s_im * r
-        out[:] = scipy.fft.irfft2(re, s=(nx, ny)) + 1j * scipy.fft.irfft2(im, s=(nx, ny))
+        out[:] = (scipy.fft.irfft2(re, s=(nx, ny), workers=workers)
+                  + 1j * scipy.fft.irfft2(im, s=(nx, ny), workers=workers))
 
     return complex_step
 
 
 @njit(cache=True, nogil=True)
-def _filter(f, out, symbol):
+def _filter(f, out, symbol, workers):
     nb, nc, nx, ny = f.shape
-    spec = scipy.fft.rfft2(f)
+    spec = scipy.fft.rfft2(f, workers=workers)
     for b in range(nb):
         for c in range(nc):
             for i in range(nx):
                 for j in range(spec.shape[3]):
                     spec[b, c, i, j] *= symbol[i, j]
-    out[:] = scipy.fft.irfft2(spec, s=(nx, ny))
+    out[:] = scipy.fft.irfft2(spec, s=(nx, ny), workers=workers)
 
 
 @njit(cache=True, nogil=True)
@@ -97,11 +102,12 @@ def _factor(kappa, bc, lam, inv_h2, like):
 
 
 @njit(cache=True, nogil=True)
-def _solve(f, out, fa, fb, bc, inv_h2):
-    """out = (−Δ_h + κ)⁻¹ f for f of shape (B, C, Nx, Ny); ``out`` may be ``f``."""
+def _solve(f, out, fa, fb, bc, inv_h2, workers):
+    """out = (−Δ_h + κ)⁻¹ f for f of shape (B, C, Nx, Ny); ``out`` may be ``f``. ``workers``:
+    the transforms' threads."""
     nb, nc, nx, ny = f.shape
     if bc == DIRICHLET:
-        g = scipy.fft.dst(f, type=1, axis=3)
+        g = scipy.fft.dst(f, type=1, axis=3, workers=workers)
         for b in range(nb):
             for c in range(nc):
                 for j in range(ny):
@@ -112,30 +118,30 @@ def _solve(f, out, fa, fb, bc, inv_h2):
                 for i in range(nx - 2, -1, -1):
                     for j in range(ny):
                         g[b, c, i, j] -= fb[i, j] * g[b, c, i + 1, j]
-        out[:] = scipy.fft.idst(g, type=1, axis=3)
+        out[:] = scipy.fft.idst(g, type=1, axis=3, workers=workers)
     else:
-        _periodic_solve(f, out, fa)
+        _periodic_solve(f, out, fa, workers)
 
 
 @njit(cache=True, nogil=True)
-def poisson_forward(states, n, p, bc, lam, inv_h2):
+def poisson_forward(states, n, p, bc, lam, inv_h2, workers):
     fa, fb = _factor(p[0], bc, lam, inv_h2, states)
     s = states.shape[0]
     for k in range(n):
-        _solve(states[k % s], states[(k + 1) % s], fa, fb, bc, inv_h2)
+        _solve(states[k % s], states[(k + 1) % s], fa, fb, bc, inv_h2, workers)
 
 
 @njit(cache=True, nogil=True)
-def poisson_adjoint(states, p, cot, cmap, ubar, pbar, want_p, bc, lam, inv_h2):
+def poisson_adjoint(states, p, cot, cmap, ubar, pbar, want_p, bc, lam, inv_h2, workers):
     fa, fb = _factor(p[0], bc, lam, inv_h2, ubar)
     m = states.shape[0]
     last = np.empty_like(ubar)
     if want_p:
         # u_m is not among the stored step inputs: one extra solve per adjoint call.
         last[:] = states[m - 1]
-        _solve(last, last, fa, fb, bc, inv_h2)
+        _solve(last, last, fa, fb, bc, inv_h2, workers)
     for k in range(m - 1, -1, -1):
-        _solve(ubar, ubar, fa, fb, bc, inv_h2)
+        _solve(ubar, ubar, fa, fb, bc, inv_h2, workers)
         if want_p:
             nxt = last if k == m - 1 else states[k + 1]
             pbar[0] -= np.sum(ubar * nxt)
@@ -207,10 +213,11 @@ class Poisson2D(Stepper):
         return self.bc_code, self.eigenvalues, self.inv_h2
 
     def _forward(self, states, n, ctrl, p):
-        poisson_forward(states, n, p, *self._args())
+        poisson_forward(states, n, p, *self._args(), parallel.threads_inside(states.shape[1]))
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
-        poisson_adjoint(states, p, cot, cmap, ubar, pbar, want_p, *self._args())
+        poisson_adjoint(states, p, cot, cmap, ubar, pbar, want_p, *self._args(),
+                        parallel.threads_inside(ubar.shape[0]))
 
     # ----------------------------------------------------------------- operator API
     def solve(self, f: np.ndarray, params: dict[str, float] | None = None) -> np.ndarray:

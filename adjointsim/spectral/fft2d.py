@@ -10,9 +10,9 @@ caller-owned arrays, so the solvers' time loops allocate nothing. Each takes ``n
 splits a transform over its independent lines, each line's arithmetic unchanged, so the result
 is the same to the bit on any number of threads; the 2D spectral steppers give a call's
 transforms every solver thread when its batch is smaller than the thread count
-(:func:`transform_threads`). Measured here (128², float64, one thread, CPU time): r2c 28 µs
-and c2r 31 µs, against 31 and 36 µs for numpy.fft.rfft2 / irfft2 called inside njit
-(rocket-fft's overloads allocate their result) and 63 µs for numpy.fft.rfft2 from Python; the
+(:func:`adjointsim.parallel.threads_inside`). Measured here (128², float64, one thread, CPU
+time): r2c 28 µs and c2r 31 µs, against 31 and 36 µs for numpy.fft.rfft2 / irfft2 called inside
+njit (rocket-fft's overloads allocate their result) and 63 µs for numpy.fft.rfft2 from Python; the
 "lowpass" variants below, which skip the transforms of the k_y columns above a cutoff (2/3
 rule: 43 of 65), take 23–25 µs.
 
@@ -43,8 +43,6 @@ import rocket_fft  # noqa: F401  (registers numpy.fft/scipy.fft for numba, loads
 from numba import njit
 from rocket_fft import lowlevel
 
-from .. import parallel
-
 __all__ = [
     "apply_multiplier",
     "dealias_cutoff",
@@ -63,7 +61,6 @@ __all__ = [
     "rfft2_adjoint",
     "rfft2_lowpass",
     "spectrum_zeros",
-    "transform_threads",
     "wavenumbers",
 ]
 
@@ -152,7 +149,8 @@ def _last_two(a):
 @njit(cache=True, nogil=True)
 def rfft2(x, out, nthreads):
     """out = rfft2(x) over the last two axes; x (..., n, n) real, out (..., n, n//2+1) complex.
-    ``nthreads``: DUCC's threads for this one call (see :func:`transform_threads`)."""
+    ``nthreads``: DUCC's threads for this one call
+    (see :func:`adjointsim.parallel.threads_inside`)."""
     lowlevel.r2c(x, out, _last_two(x), True, 1.0, nthreads)
 
 
@@ -184,18 +182,6 @@ def irfft2_lowpass(xh, out, cutoff, nthreads):
     ax = np.array([xh.ndim - 1])
     lowlevel.c2c(xh[..., : cutoff + 1], xh[..., : cutoff + 1], ax - 1, False, 1.0, nthreads)
     lowlevel.c2r(xh, out, ax, False, 1.0 / (n * n), nthreads)
-
-
-def transform_threads(batch: int) -> int:
-    """DUCC threads for the transforms of a kernel call over ``batch`` rows: every solver thread
-    (:func:`adjointsim.parallel.threads`) for a call with fewer rows than threads that is not
-    itself one chunk of a split call, else 1 (the split of the rows uses the threads then).
-
-    DUCC splits a transform over its independent lines, each line's arithmetic unchanged, so
-    the results are the same to the bit for every count; it also keeps small grids on one
-    thread by itself."""
-    count = parallel.threads()
-    return 1 if batch >= count or parallel.inside_chunk() else count
 
 
 @njit(cache=True, nogil=True)

@@ -199,3 +199,21 @@ def test_matches_numpy_reference(cls, bc):
         u0 = stepper.random_state(np.random.default_rng(n), 3)
         np.testing.assert_allclose(stepper.rollout(u0, 9), ROLLOUTS[cls.name](stepper, u0, 9),
                                    rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("cls", CLASSES[2:], ids=ids[2:])
+def test_batch_one_is_bitwise_equal_on_one_and_two_threads(cls):
+    from adjointsim import parallel
+
+    n, steps = 128, 3
+    s = cls(n=n, bc="neumann", forcing=forcing_profile(cls, n))
+    rng = np.random.default_rng(4)
+    u0, ctrl = s.random_state(rng, 1), s.random_controls(rng, steps, 1)
+    results = []
+    for threads in (1, 2):
+        with parallel.using_threads(threads):
+            last = s.rollout(u0, steps, ctrl)
+            g = s.vjp(u0, steps, last, ctrl, wrt_params=True)
+        results.append((last, g.state, g.controls, np.array(list(g.params.values()))))
+    for a, b in zip(*results):
+        assert a.tobytes() == b.tobytes()

@@ -139,3 +139,21 @@ def test_bad_input():
         Poisson2D(bc="neumann")
     with pytest.raises(ValueError, match="no control hook"):
         s.rollout(np.zeros((1, 1, 8, 8)), 2, np.zeros((2, 1, 1)))
+
+
+@pytest.mark.parametrize("bc", ["dirichlet", "periodic"])
+def test_batch_one_is_bitwise_equal_on_one_and_two_threads(bc):
+    # Batch 1 on two threads gives the transforms both threads (no batch split to use them).
+    from adjointsim import parallel
+
+    s = Poisson2D(n=128, bc=bc, kappa=0.2)
+    u0 = s.random_state(np.random.default_rng(3), 1)
+    results = []
+    for threads in (1, 2):
+        with parallel.using_threads(threads):
+            assert parallel.threads_inside(1) == threads
+            last = s.rollout(u0, 3)
+            g = s.vjp(u0, 3, last, wrt_params=True)
+        results.append((last, g.state, np.array([g.params["kappa"]])))
+    for a, b in zip(*results):
+        assert a.tobytes() == b.tobytes()
