@@ -393,8 +393,11 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
     x_train, x_test = initial_states(cfg, task)
     net = build_net(cfg, task)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    weighting = None if cfg.weighting == "uniform" else Weighting(task.terms, cfg.weighting,
-                                                                   seed=cfg.seed)
+    # max/avg keeps one term's weight at 1: the PINNs' PDE residual, here the objective the
+    # controller exists for (the task's first term); ID takes the largest spread as reference
+    reference = task.terms[0] if cfg.weighting == "max-avg" else None
+    weighting = None if cfg.weighting == "uniform" else Weighting(
+        task.terms, cfg.weighting, reference=reference, seed=cfg.seed)
     # the epoch's progress too, so that Ctrl-C between two updates resumes where it stopped
     state = {"epoch": 0, "finished": False, **_fresh_epoch()}
     history: list[dict] = []

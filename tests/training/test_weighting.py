@@ -581,3 +581,19 @@ def test_the_sequential_problem_records_each_phase_and_the_spreads_when_terms_jo
         < first["spread/lap"]
     assert result["weights"]["grad"] > 1.0 > result["weights"]["lap"]
     assert result["weights"]["data"] == 1.0
+
+
+def test_every_scheme_the_controller_accepts_trains_the_guidance_task(tmp_path):
+    """One epoch per scheme that a guidance controller's config accepts (max/avg keeps the
+    objective, the tracking term, at λ = 1)."""
+    from adjointsim.train import control
+
+    accepted = control.ControlConfig.ACCEPTED["weighting"]
+    assert "max-avg" in accepted and "ntk" not in accepted
+    for scheme in accepted:
+        cfg = control.ControlConfig(task="guidance", mode="R", weighting=scheme, epochs=1,
+                                    train=4, test=4, batch=4, out=str(tmp_path / scheme))
+        result = control.train_controller(cfg, progress=False)
+        assert math.isfinite(result["test_loss"]), scheme
+        if scheme == "max-avg":
+            assert result["weights"]["tracking"] == 1.0
