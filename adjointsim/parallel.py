@@ -33,9 +33,13 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 ENVIRONMENT = "ADJOINTSIM_THREADS"
-#: a chunk holds at least this many point-steps (batch rows × steps × grid points): below it
-#: the chunk's own cost (copies, one more kernel call: tens of µs) would no longer be small
-MIN_CHUNK_WORK = 1 << 15
+#: a chunk holds at least this much work, in ns (batch rows × steps × grid points × the
+#: solver's cost of a point-step): below it the chunk's own cost (copies, a kernel call, a
+#: thread's wake-up: tens to a hundred µs) would no longer be small
+MIN_CHUNK_WORK = 400_000
+#: the smallest grid whose transforms run on several threads at a batch of one (measured: a
+#: 2D vorticity step at 512² gains 1.6x on 2 threads, at 256² and 128² it loses)
+MIN_POINTS_INSIDE = 512 * 512
 #: the most chunks of a split that must not depend on the thread count
 FIXED_CHUNKS = 16
 
@@ -93,8 +97,9 @@ def using_threads(n: int | None) -> Iterator[None]:
         _chosen = before
 
 
-def chunks(batch: int, work_per_row: int, min_rows: int = 1, fixed: bool = False) -> list[slice]:
-    """How a call over ``batch`` rows of ``work_per_row`` point-steps each is split: slices of
+def chunks(batch: int, work_per_row: float, min_rows: int = 1, fixed: bool = False
+           ) -> list[slice]:
+    """How a call over ``batch`` rows of ``work_per_row`` ns each is split: slices of
     nearly equal size, one slice (no split) for a small call or a single thread.
 
     Rows never interact, so the states and state cotangents of a chunk are those the whole
@@ -108,7 +113,7 @@ def chunks(batch: int, work_per_row: int, min_rows: int = 1, fixed: bool = False
     if inside_chunk() and not fixed:
         return [slice(0, batch)]
     most = batch // min_rows if batch >= min_rows else batch
-    count = min(most, batch * max(work_per_row, 1) // MIN_CHUNK_WORK,
+    count = min(most, int(batch * max(work_per_row, 1) // MIN_CHUNK_WORK),
                 FIXED_CHUNKS if fixed else threads())
     if count < 2:
         return [slice(0, batch)]
@@ -123,16 +128,19 @@ def inside_chunk() -> bool:
     return getattr(_inside, "active", False)
 
 
-def threads_inside(batch: int) -> int:
+def threads_inside(batch: int, points: int) -> int:
     """Threads for the work inside one sample (the lines of a grid, a transform's lines) of a
-    kernel call over ``batch`` rows: every solver thread (:func:`threads`) for a call with fewer
-    rows than threads that is not itself one chunk of a split call, else 1 (the split of the
-    rows uses the threads then).
+    kernel call over ``batch`` rows of ``points`` grid points: every solver thread
+    (:func:`threads`) for a call with fewer rows than threads, on a grid of at least
+    ``MIN_POINTS_INSIDE`` points, that is not itself one chunk of a split call; else 1 (the
+    split of the rows uses the threads then, and on smaller grids starting the transforms'
+    threads costs more than they save).
 
     Only work whose arithmetic does not depend on the split goes on these threads (independent
     lines, never a sum), so the results are the same to the bit for every count."""
     count = threads()
-    return 1 if batch >= count or inside_chunk() else count
+    small = batch >= count or points < MIN_POINTS_INSIDE
+    return 1 if small or inside_chunk() else count
 
 
 def _pool(size: int) -> ThreadPoolExecutor:

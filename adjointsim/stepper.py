@@ -150,6 +150,9 @@ class Stepper:
     #: a batch of at least this many rows runs in chunks of at least as many (see
     #: :func:`adjointsim.parallel.chunks`)
     _min_chunk_rows: ClassVar[int] = 1
+    #: ns per point-step on one core, roughly: only decides whether a call is worth splitting
+    #: over threads (a stencil's is about 2, a spectral step's 10-16)
+    point_cost: ClassVar[float] = 2.0
 
     # ----------------------------------------------------------------- subclass hooks
     def _forward(self, states: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray) -> None:
@@ -547,8 +550,8 @@ class Stepper:
         cbar = np.zeros(controls.shape, dtype=dtype)
         pbar = np.zeros(len(self.param_names), dtype=np.float64)
         if n and u0.shape[0]:  # else nothing to reverse: no kernel call
-            parts = parallel.chunks(u0.shape[0], n * _points(u0.shape[1:]), self._min_chunk_rows,
-                                    fixed=wrt_params)
+            work = n * _points(u0.shape[1:]) * self.point_cost
+            parts = parallel.chunks(u0.shape[0], work, self._min_chunk_rows, fixed=wrt_params)
             if len(parts) == 1:
                 self._reverse(u0, n, controls, params, cotangents, cmap, ubar, cbar, pbar,
                               wrt_params, checkpoint, trajectory)
@@ -621,7 +624,7 @@ class Stepper:
     def _forward_rows(self, states: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray) -> None:
         """``_forward`` over the chunks of batch rows :func:`parallel.chunks` gives, on the
         solver threads."""
-        work = n * _points(states.shape[2:])
+        work = n * _points(states.shape[2:]) * self.point_cost
         parts = parallel.chunks(states.shape[1], work, self._min_chunk_rows)
         if len(parts) == 1:
             self._forward(states, n, ctrl, p)

@@ -81,6 +81,7 @@ class AdvectionDiffusion2D(Stepper):
     ``velocity_x``, ``velocity_y``, ``nu``."""
 
     name = "advdiff2d-etdrk4"
+    point_cost = 4.0
     complex_step = False
     param_names = ("velocity_x", "velocity_y", "nu")
     #: smallest (even) n the kernels and the default state support
@@ -151,7 +152,7 @@ class AdvectionDiffusion2D(Stepper):
     def _forward(self, states, n, ctrl, p):
         e = self.propagator(p).astype(self._cplx(states.dtype))
         advdiff_forward(states, n, ctrl, states.dtype.type(self.dt), e,
-                        parallel.threads_inside(states.shape[1]))
+                        parallel.threads_inside(states.shape[1], self.n**2))
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
         real = ubar.dtype
@@ -159,5 +160,5 @@ class AdvectionDiffusion2D(Stepper):
         advdiff_adjoint(
             states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, real.type(self.dt), e,
             self._dk[0].astype(real), self._dk[1].astype(real), self.k2.astype(real),
-            hermitian_weights(self.n), parallel.threads_inside(states.shape[1]),
+            hermitian_weights(self.n), parallel.threads_inside(states.shape[1], self.n**2),
         )

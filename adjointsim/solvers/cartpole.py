@@ -142,6 +142,7 @@ class CartPole(Stepper):
     """``poles`` (1..4) poles on one cart pushed by a force; the note's constants by default."""
 
     name = "cartpole"
+    point_cost = 9.0
     space = {
         "poles": Range(1, 4, integer=True),
         "dt": Range(0.005, 0.02),

@@ -213,6 +213,7 @@ class Guidance(Stepper):
     """``drivers`` agents steered by two coefficients each herd ``evaders`` to the origin."""
 
     name = "guidance"
+    point_cost = 120.0  # every agent feels every other
     space = {
         "drivers": Range(1, 3, integer=True),
         "evaders": Range(1, 5, integer=True),

@@ -446,6 +446,11 @@ class NavierStokes2D(Stepper):
         return cls if hasattr(cls, "order") else BY_ORDER[order]
 
     # -------------------------------------------------------------- contract
+    @property
+    def point_cost(self) -> float:  # type: ignore[override]
+        # measured: about 3.6 + 6.8·order ns per point-step
+        return 3.6 + 6.8 * self.order
+
     def check_params(self, p: np.ndarray) -> None:
         why = (
             "L = −ν|k|² − μ is integrated exactly, so the linear part sets no Δt limit; the "
@@ -512,7 +517,7 @@ class NavierStokes2D(Stepper):
     def _forward(self, states, n, ctrl, p, record=False):
         tape = self._new_tape(states, n, record)
         ns_forward(states, n, ctrl, *self._args(p, states.dtype), tape,
-                   parallel.threads_inside(states.shape[1]))
+                   parallel.threads_inside(states.shape[1], self.n**2))
         return tape if tape.shape[0] else None
 
     def _new_tape(self, states: np.ndarray, n: int, record: bool) -> np.ndarray:
@@ -538,7 +543,7 @@ class NavierStokes2D(Stepper):
         ns_adjoint(
             states, ctrl, cot, cmap, ubar, cbar, pbar, want_p, dt, a, b, da, db, kx, ky,
             inv_k2, keep, ncols, reuse, fmode, fval, fbar, self._pidx, self.k2,
-            hermitian_weights(self.n), tape, parallel.threads_inside(states.shape[1]),
+            hermitian_weights(self.n), tape, parallel.threads_inside(states.shape[1], self.n**2),
         )
 
 

@@ -160,6 +160,7 @@ class Poisson2D(Stepper):
     """
 
     name = "poisson2d"
+    point_cost = 3.0
     space = {
         "n": Range(6, 24, integer=True),
         "bc": Choice(("periodic", "dirichlet")),
@@ -213,11 +214,12 @@ class Poisson2D(Stepper):
         return self.bc_code, self.eigenvalues, self.inv_h2
 
     def _forward(self, states, n, ctrl, p):
-        poisson_forward(states, n, p, *self._args(), parallel.threads_inside(states.shape[1]))
+        inside = parallel.threads_inside(states.shape[1], self.n**2)
+        poisson_forward(states, n, p, *self._args(), inside)
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
         poisson_adjoint(states, p, cot, cmap, ubar, pbar, want_p, *self._args(),
-                        parallel.threads_inside(ubar.shape[0]))
+                        parallel.threads_inside(ubar.shape[0], self.n**2))
 
     # ----------------------------------------------------------------- operator API
     def solve(self, f: np.ndarray, params: dict[str, float] | None = None) -> np.ndarray:

@@ -160,6 +160,7 @@ class SchrodingerCN(Stepper):
     """
 
     name = "schrodinger1d-cn"
+    point_cost = 6.0
     space = {
         "n": Range(6, 40, integer=True),
         "dt": Range(0.025, 0.1),

@@ -181,15 +181,17 @@ def test_transforms_on_several_threads_are_bitwise_those_on_one(n, rng):
             np.testing.assert_array_equal(a, b)
 
 
-def test_threads_inside_go_to_calls_smaller_than_the_thread_count():
+def test_threads_inside_go_to_large_grids_in_calls_smaller_than_the_thread_count():
     from adjointsim import parallel
 
+    big = parallel.MIN_POINTS_INSIDE
     with parallel.using_threads(1):
-        assert parallel.threads_inside(1) == 1
+        assert parallel.threads_inside(1, big) == 1
     with parallel.using_threads(4):
-        assert [parallel.threads_inside(b) for b in (1, 3, 4, 16)] == [4, 4, 1, 1]
+        assert [parallel.threads_inside(b, big) for b in (1, 3, 4, 16)] == [4, 4, 1, 1]
+        assert parallel.threads_inside(1, big - 1) == 1
         # Inside one chunk of a split call the split already uses the threads.
-        inner = parallel.map_chunks(lambda b: parallel.threads_inside(b), [1, 1])
+        inner = parallel.map_chunks(lambda b: parallel.threads_inside(b, big), [1, 1])
         assert inner == [1, 1]
 
 

@@ -142,16 +142,18 @@ def test_bad_input():
 
 
 @pytest.mark.parametrize("bc", ["dirichlet", "periodic"])
-def test_batch_one_is_bitwise_equal_on_one_and_two_threads(bc):
-    # Batch 1 on two threads gives the transforms both threads (no batch split to use them).
+def test_batch_one_is_bitwise_equal_on_one_and_two_threads(bc, monkeypatch):
+    # Batch 1 on two threads gives the transforms both threads (no batch split to use them),
+    # here from 128² on.
     from adjointsim import parallel
 
+    monkeypatch.setattr(parallel, "MIN_POINTS_INSIDE", 128 * 128)
     s = Poisson2D(n=128, bc=bc, kappa=0.2)
     u0 = s.random_state(np.random.default_rng(3), 1)
     results = []
     for threads in (1, 2):
         with parallel.using_threads(threads):
-            assert parallel.threads_inside(1) == threads
+            assert parallel.threads_inside(1, 128 * 128) == threads
             last = s.rollout(u0, 3)
             g = s.vjp(u0, 3, last, wrt_params=True)
         results.append((last, g.state, np.array([g.params["kappa"]])))
