@@ -17,7 +17,8 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
   modes R/M/S/C, clipping none/value/norm, 3 seeds; epochs per task sized to about an hour
   per task on 2 cores (the paper runs 1000);
 * ``paper``: the paper's budget at the hardest cart-pole level (4 poles): 1000 epochs of the
-  paper's settings, modes R, M and C and R with norm clipping, 3 seeds.
+  paper's settings, modes R, M and C and R with norm clipping, 3 seeds;
+* ``paper-guidance``: the same for the guidance task at control weight 0.001, at 300 epochs.
 
 Cells that differ only in the seed and the clipping train together as one ensemble
 (:func:`adjointsim.train.ensemble.train_ensemble`): one task of the runner per ensemble, each
@@ -67,6 +68,11 @@ SIZES = {
     "paper": {"tasks": {"cartpole": (4,)}, "modes": ("R", "M", "C"), "clips": ("none",),
               "extra": (("R", "norm"),), "seeds": 3, "train": 256, "test": 256, "batch": 8,
               "epochs": {"cartpole": 1000}},
+    # the guidance task at its hardest control weight, as many epochs as fit in half an hour
+    # of 2 cores (the paper: 1000)
+    "paper-guidance": {"tasks": {"guidance": (0.001,)}, "modes": ("R", "M", "C"),
+                       "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
+                       "test": 256, "batch": 8, "epochs": {"guidance": 300}},
 }
 
 
