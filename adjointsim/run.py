@@ -229,9 +229,12 @@ def plot_history(path: str | Path, curves: dict[str, Sequence[dict]], x: str, y:
 
 
 # ----------------------------------------------------------------------------- the directory
-def differing(ours: dict, theirs: dict) -> list[str]:
-    """The keys on which two configurations differ (a key only one has counts)."""
-    return sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
+def differing(ours: dict, theirs: dict, resumable: Iterable[str] = ()) -> list[str]:
+    """The keys on which two configurations differ (a key only one has counts), apart from
+    ``resumable`` ones: those a run may be continued with other values of (where it lives,
+    its threads, when it stops), so a run recorded before such a key existed is the same run."""
+    return sorted(k for k in ours.keys() | theirs.keys()
+                  if ours.get(k) != theirs.get(k) and k not in resumable)
 
 
 def read_result(path: Path) -> dict:
@@ -246,9 +249,10 @@ def read_result(path: Path) -> dict:
     return result
 
 
-def refuse_foreign(out: Path, config: dict) -> None:
+def refuse_foreign(out: Path, config: dict, resumable: Iterable[str] = ()) -> None:
     """``RunExists`` when ``out`` holds somebody else's files: a ``config.json`` that is not
-    ``config`` (another run, or not a run), or files but no ``config.json`` at all."""
+    ``config`` up to its ``resumable`` keys (another run, or not a run), or files but no
+    ``config.json`` at all."""
     path = out / "config.json"
     if not path.exists():
         if out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir()):
@@ -260,13 +264,13 @@ def refuse_foreign(out: Path, config: dict) -> None:
     except (ValueError, UnicodeDecodeError):
         theirs = None
     ours = json.loads(json_text(config))
-    if theirs == ours:
+    if isinstance(theirs, dict) and not differing(ours, theirs, resumable):
         return
-    if isinstance(theirs, dict) and theirs.keys() == ours.keys():  # this command's run
+    if isinstance(theirs, dict) and _keys(theirs, resumable) == _keys(ours, resumable):
         state = "a finished run" if (out / "result.json").exists() else "a run"
         raise RunExists(f"{out} holds {state} of another configuration (differs in "
-                        f"{', '.join(differing(ours, theirs))}); choose another --out, or "
-                        "start it again with --overwrite")
+                        f"{', '.join(differing(ours, theirs, resumable))}); choose another "
+                        "--out, or start it again with --overwrite")
     what = (f"differs in {', '.join(differing(ours, theirs))}" if isinstance(theirs, dict)
             else "is not a run's")
     raise RunExists(f"{out} holds another run or other files (its config.json {what}); "
@@ -304,24 +308,26 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def finished_result(out: Path, resume: bool, config: dict | None = None,
-                    keys: Iterable[str] = ()) -> dict | None:
+                    keys: Iterable[str] = (), resumable: Iterable[str] = ()) -> dict | None:
     """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
     when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
     With ``config``, a finished run whose result disagrees with it is ``RunExists`` too, and so
     is a directory without a run whose ``config.json`` is not ``config`` (somebody else's).
-    A result without ``config``'s keys and ``keys`` is damaged."""
+    A result without ``config``'s keys and ``keys`` is damaged; ``resumable`` keys may differ
+    or be missing."""
     result_path = out / "result.json"
     if config is not None:
-        refuse_foreign(out, config)
+        refuse_foreign(out, config, resumable)
     if result_path.exists():
         if resume:
             result = read_result(result_path)
             ours = json.loads(json_text(config or {}))
-            missing = [k for k in (*ours, *keys) if k not in result]
+            missing = [k for k in (*ours, *keys) if k not in result and k not in resumable]
             if missing:
                 raise RunExists(f"{result_path} is damaged (it lacks {', '.join(missing)}); "
                                 "delete it to finish the run again from its checkpoint")
-            differ = sorted(k for k, v in ours.items() if result.get(k) != v)
+            differ = sorted(k for k, v in ours.items()
+                            if result.get(k) != v and k not in resumable)
             if differ:
                 raise RunExists(f"{out} holds a finished run of another configuration "
                                 f"(differs in {', '.join(differ)}); choose another --out")
@@ -342,14 +348,19 @@ def require_checkpoint(out: Path) -> None:
                         "command without --resume to start the run")
 
 
-def holds_run(out: Path, config: dict) -> bool:
+def holds_run(out: Path, config: dict, resumable: Iterable[str] = ()) -> bool:
     """Whether ``out`` holds a run of the command whose configs have ``config``'s keys (of any
-    configuration): what ``--overwrite`` may discard. Somebody else's files never are."""
+    configuration; ``resumable`` ones may be missing): what ``--overwrite`` may discard.
+    Somebody else's files never are."""
     try:
         theirs = json.loads((out / "config.json").read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(theirs, dict) and theirs.keys() == config.keys()
+    return isinstance(theirs, dict) and _keys(theirs, resumable) == _keys(config, resumable)
+
+
+def _keys(config: dict, resumable: Iterable[str]) -> set[str]:
+    return set(config) - set(resumable)
 
 
 def discard(out: Path, patterns: Iterable[str]) -> None:

@@ -6,12 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import at_least, config_flags, overrides, run_options, threads_option, write_result
+from .options import THREADS_HELP, at_least, config_flags, overrides, run_options, write_result
 
 _HELPS = {
     "optimizer": "half-inverse gradients, Gauss-Newton or Adam, each with the problem's batch "
     "size and learning rate",
     "size": "tiny shrinks the data sets (for tests); quick is full",
+    "threads": THREADS_HELP,
 }
 
 
@@ -31,19 +32,16 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-updates", dest="max_updates", type=at_least(1), default=None,
                    metavar="N", help="stop after this many updates (config key max_updates; "
                    "default: no limit)")
-    threads_option(p, 1)
 
 
 def run(args: argparse.Namespace) -> int:
     from adjointsim.run import require_checkpoint, run_errors
     from adjointsim.train.hig_problems import HigConfig, train_run
-    from adjointsim.train.threads import use_threads
 
     cfg = HigConfig.load(args.config, **overrides(args, HigConfig))
     out = args.out or Path("runs") / f"hig-{cfg.problem}-{cfg.optimizer}-seed{cfg.seed}"
     if args.resume:
         require_checkpoint(out)
-    use_threads(args.threads)
     with run_errors(out):
         result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
                            progress=args.progress)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import config_flags, overrides, run_options, threads_option, write_result
+from .options import THREADS_HELP, config_flags, overrides, run_options, write_result
 
 _HELPS = {
     "k": "the Poisson wavenumber: ω = kπ",
@@ -29,6 +29,7 @@ _HELPS = {
     "edge_points": "points per boundary edge (ks-inverse: times of the periodicity term)",
     "route": "Δu by the forward Taylor route or nested autograd (Poisson only)",
     "log_every": "epochs between rows of history.csv",
+    "threads": THREADS_HELP,
 }
 
 
@@ -38,7 +39,6 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("problem", nargs="?", choices=PROBLEMS, default=None,
                    help="the problem (default poisson, or the --config file's)")
     run_options(p, "runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
-    threads_option(p, 1)
     config_flags(p, PinnConfig, PinnConfig.ACCEPTED, skip=("problem",), helps=_HELPS)
 
 
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         require_checkpoint(out)
     with run_errors(out):
         result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,
-                                overwrite=args.overwrite, threads=args.threads)
+                                overwrite=args.overwrite)
     write_result(args, result)
     if result["diverged"]:
         print(f"{name} {cfg.weighting}: diverged after {pinn.MAX_SKIPS} non-finite losses in a "

@@ -94,11 +94,13 @@ def load_checkpoint(path: str | Path, keys: Iterable[str] = ("model",),
     return ckpt
 
 
-def load_run_checkpoint(path: Path, config: dict, keys: Iterable[str]) -> dict:
+def load_run_checkpoint(path: Path, config: dict, keys: Iterable[str],
+                        resumable: Iterable[str] = ()) -> dict:
     """The checkpoint of an unfinished run of ``config``, verified as :func:`load_checkpoint`
-    does; one written under another configuration is ``RunExists`` naming the keys."""
+    does; one written under another configuration (``resumable`` keys aside) is ``RunExists``
+    naming the keys."""
     ckpt = load_checkpoint(path, keys, "delete it to start again")
-    differ = differing(config, ckpt["config"])
+    differ = differing(config, ckpt["config"], resumable)
     if differ:
         raise RunExists(f"{path.parent} holds a run of another configuration (differs in "
                         f"{', '.join(differ)}); choose another --out")

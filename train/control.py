@@ -551,7 +551,7 @@ def _claim(cfg: ControlConfig, out: Path, resume: bool, overwrite: bool) -> dict
                            recover=f"delete it, or {again}")
     # a run recorded before the weighting was a key trained its loss as it is
     recorded = {"weighting": "uniform", **ckpt["config"]}
-    differ = [k for k in differing(cfg.as_dict(), recorded) if k not in RESUMABLE]
+    differ = differing(cfg.as_dict(), recorded, RESUMABLE)
     if differ:
         raise RunExists(f"{out} holds a run of another configuration (differs in "
                         f"{', '.join(differ)}); {again}")

@@ -70,6 +70,7 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from .checkpoint import load_run_checkpoint, restore, save_checkpoint
 from .hig import HalfInverseGradients, SolverPhysics, TorchPhysics
+from .threads import use_threads
 
 PROBLEMS = ("oscillators", "quantum", "poisson", "chain")
 OPTIMIZERS = ("adam", "gn", "hig")
@@ -272,6 +273,7 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     "budget": Interval(0, lo_open=True),
     "size": SIZES,
     "max_updates": Interval(1),
+    "threads": Interval(1),
 }
 
 
@@ -286,6 +288,9 @@ class HigConfig(Config):
     budget: float | None = None
     size: str = "full"
     max_updates: int | None = None
+    #: torch's and the solver's threads (they take turns); more of them buy more updates
+    #: within the budget
+    threads: int = 1
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
@@ -294,6 +299,9 @@ class HigConfig(Config):
             self.budget = BUDGETS[self.problem]
 
 
+#: what a run may be resumed with other values of (and what a run recorded before it was a key
+#: lacks)
+RESUMABLE = ("threads",)
 HISTORY_FIELDS = ("update", "wall_s", "train_loss", "test_loss")
 #: what a run directory holds besides config.json, checkpoint.pt and result.json
 RUN_FILES = ("history.csv", "loss.png")
@@ -312,12 +320,14 @@ def train_run(cfg: HigConfig, out: Path, resume: bool = False, overwrite: bool =
     if resume and overwrite:
         raise UserError("--resume continues a run and --overwrite discards it: pass one")
     cfg.validate()
+    use_threads(cfg.threads)
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
     config = cfg.as_dict()
-    if overwrite and holds_run(out, config):  # a run's files, never somebody else's
+    if overwrite and holds_run(out, config, RESUMABLE):  # never somebody else's files
         discard(out, RUN_FILES)
-    finished = finished_result(out, resume, config, ("wall_s", "updates", "test_loss"))
+    finished = finished_result(out, resume, config, ("wall_s", "updates", "test_loss"),
+                               RESUMABLE)
     if finished is not None:
         return finished
     out.mkdir(parents=True, exist_ok=True)
@@ -331,7 +341,8 @@ def train_run(cfg: HigConfig, out: Path, resume: bool = False, overwrite: bool =
              "diverged": False}
     if ckpt_path.exists():
         ckpt = load_run_checkpoint(ckpt_path, config,
-                                   ("config", "model", "optimizer", "generator", "state"))
+                                   ("config", "model", "optimizer", "generator", "state"),
+                                   RESUMABLE)
         restore(model, ckpt["model"], ckpt_path)
         if cfg.optimizer == "adam":
             restore(opt, ckpt["optimizer"], ckpt_path)

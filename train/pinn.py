@@ -112,7 +112,11 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     "edge_points": Interval(1, 100_000),
     "route": ROUTES,
     "log_every": Interval(1),
+    "threads": Interval(1),
 }
+#: what a run may be resumed with other values of (and what a run recorded before it was a key
+#: lacks): its threads do not change its result
+RESUMABLE = ("threads",)
 
 
 @dataclass
@@ -139,6 +143,8 @@ class PinnConfig(Config):
     edge_points: int = 100
     route: str = "taylor"
     log_every: int = 100
+    #: torch's and the solver's threads (they take turns)
+    threads: int = 1
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
@@ -550,20 +556,20 @@ def make_weighting(cfg: PinnConfig, problem: PinnProblem) -> Weighting:
 
 # ----------------------------------------------------------------------------- training
 def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: bool = True,
-              plot: bool = True, overwrite: bool = False, threads: int = 1) -> dict:
-    """Train ``cfg`` in ``out`` (see the module doc) on ``threads`` torch and solver threads;
+              plot: bool = True, overwrite: bool = False) -> dict:
+    """Train ``cfg`` in ``out`` (see the module doc) on ``cfg.threads`` torch and solver threads;
     returns the result (also result.json). A run already in ``out`` is continued with ``resume`` (a
     finished one's result is returned as it is), discarded with ``overwrite``, and otherwise
     never overwritten."""
-    use_threads(threads)
+    use_threads(cfg.threads)
     problem = make_problem(cfg)
     config = cfg.as_dict()
     out = Path(out)
     result_path, ckpt_path = out / "result.json", out / "checkpoint.pt"
-    if overwrite and holds_run(out, config):
+    if overwrite and holds_run(out, config, RESUMABLE):
         discard(out, RUN_FILES)
     else:
-        finished = finished_result(out, resume, config, RESULT_KEYS)
+        finished = finished_result(out, resume, config, RESULT_KEYS, RESUMABLE)
         if finished is not None:
             return finished
     model = problem.model()
@@ -581,7 +587,7 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     state = {"epoch": 0, "history": [], "skipped": 0, "streak": 0, "seconds": 0.0,
              "diverged": False, "phases": []}
     if ckpt_path.exists():
-        ckpt = load_run_checkpoint(ckpt_path, config, CHECKPOINT_KEYS)
+        ckpt = load_run_checkpoint(ckpt_path, config, CHECKPOINT_KEYS, RESUMABLE)
         try:
             model.load_state_dict(ckpt["model"])
             opt.load_state_dict(ckpt["optimizer"])

@@ -122,6 +122,24 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     assert again["rel_l2"] == straight["rel_l2"] and again["weights"] == straight["weights"]
 
 
+def test_threads_may_change_on_resume_and_runs_recorded_without_the_key_are_kept(tmp_path):
+    straight = train_run(_cfg(), tmp_path / "a", progress=False, plot=False)
+    train_run(_cfg(), tmp_path / "b", progress=False, plot=False)
+    out = tmp_path / "b"
+    (out / "result.json").unlink()  # stopped before its result, written before threads was a key
+    config = json.loads((out / "config.json").read_text())
+    del config["threads"]
+    (out / "config.json").write_text(json.dumps(config))
+    again = train_run(_cfg(threads=2), out, resume=True, progress=False, plot=False)
+    assert again["rel_l2"] == straight["rel_l2"] and again["threads"] == 2
+    finished = json.loads((out / "result.json").read_text())
+    del finished["threads"]
+    (out / "result.json").write_text(json.dumps(finished))
+    assert train_run(_cfg(), out, resume=True, progress=False)["rel_l2"] == again["rel_l2"]
+    with pytest.raises(RunExists, match="differs in seed"):
+        train_run(_cfg(seed=1), out, resume=True, progress=False)
+
+
 def test_non_finite_losses_skip_the_update_with_a_warning(tmp_path, monkeypatch):
     real, calls = pinn.Poisson.losses, []
 
