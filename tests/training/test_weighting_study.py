@@ -77,6 +77,20 @@ def test_sizes_skip_the_poisson_only_schemes_elsewhere():
         ("poisson-k1-uniform-s1", 1), ("guidance-mgda-s1", 1)}
 
 
+def test_k6_size_has_five_seeds_for_the_schemes_near_id_and_three_for_the_others():
+    seeds = {}
+    for c in study.cells("k6", None):
+        assert (c["problem"], c["k"], c["epochs"]) == ("poisson", 6, 30001)
+        seeds.setdefault(c["weighting"], []).append(c["seed"])
+    far = {"mgda", "gradnorm", "softadapt", "relobralo", "ntk"}
+    assert seeds == {w: list(range(3 if w in far else 5)) for w in RULES}
+    # --seeds replaces the per-scheme counts too
+    assert len(study.cells("k6", 2)) == 2 * len(RULES)
+    reduced = study.cells("reduced", 1)
+    assert {(c["k"], c["epochs"]) for c in reduced} == {(k, 3000) for k in range(1, 6)}
+    assert len(reduced) == 5 * len(RULES)
+
+
 def test_ks_inverse_row_measures_the_coefficients(tmp_path):
     cell = {"id": "ks", "problem": "ks-inverse", "weighting": "uniform", "seed": 0,
             "epochs": 3, **study.SIZES["tiny"]["net"]}
