@@ -77,6 +77,10 @@ SIZES: dict[str, dict] = {
     # 45 s a cell; --seeds 1 is the first sitting's 55 cells)
     "reduced": {"poisson": {k: REDUCED for k in range(1, 6)}, "others": {}, "schemes": RULES,
                 "seeds": (3, 0), "net": {}, "control": {}},
+    # Sobolev trained well past the quick size's 100 epochs (inverse-Dirichlet: relative L2
+    # 0.74 at 200 epochs, 0.035 at 1400), about 6 minutes a cell here
+    "sobolev": {"poisson": {}, "others": {"sobolev": 1500}, "schemes": RULES,
+                "seeds": (0, 1), "net": {}, "control": {}},
     "full": {"poisson": {**{k: REDUCED for k in range(1, 6)}, 6: EPOCHS["poisson"]},
              "others": {"sobolev": EPOCHS["sobolev"], "ks-inverse": EPOCHS["ks-inverse"],
                         "guidance": 100},
@@ -169,10 +173,17 @@ def _medians(rows: list[dict]) -> dict[tuple[str, str], float]:
             for key, errs in groups.items()}
 
 
+def _seeds(rows: list[dict]) -> str:
+    """How many seeds each scheme has: "3 seeds", or "3-5 seeds" where they differ."""
+    n = sorted({len({r["seed"] for r in rows if r["weighting"] == w}) for w in _schemes(rows)})
+    return f"{n[0]}{f'-{n[-1]}' * (len(n) > 1)} seed{'s' * (n[-1] > 1)}"
+
+
 def _problem_table(rows: list[dict]) -> list[str]:
     """One problem's rows as a Markdown table (median over seeds [min, max] per column and
     scheme, the best median per column in bold) and its notes."""
     cols, schemes, med = _columns(rows), _schemes(rows), _medians(rows)
+    counts = {len({r["seed"] for r in rows if r["weighting"] == w}) for w in schemes}
     best = {c: min((v for (cc, _), v in med.items() if cc == c), default=math.inf)
             for c in cols}
     lines = ["| scheme | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
@@ -180,14 +191,13 @@ def _problem_table(rows: list[dict]) -> list[str]:
         cells_ = []
         for c in cols:
             errs = [rel_l2_of(r) for r in rows if _column(r) == c and r["weighting"] == w]
-            text = median_range(errs, count=False) if errs else "-"
+            text = median_range(errs, count=len(counts) > 1) if errs else "-"
             cells_.append(f"**{text}**" if errs and med[(c, w)] == best[c] < math.inf
                           else text)
         lines.append(f"| {w} | " + " | ".join(cells_) + " |")
-    seeds = len({r["seed"] for r in rows})
     epochs = {c: sorted({r["epochs"] for r in rows if _column(r) == c}) for c in cols}
-    notes = [f"Median over {seeds} seed{'s' * (seeds > 1)}"
-             + (" [min, max]" if seeds > 1 else "") + "; epochs: "
+    notes = [f"Median over {_seeds(rows)}" + (" [min, max]" if max(counts) > 1 else "")
+             + (" (n: how many)" if len(counts) > 1 else "") + "; epochs: "
              + ", ".join(f"{c}: {'/'.join(map(str, e))}" for c, e in epochs.items()) + "."]
     for c in cols:
         ref = med.get((c, "inverse-dirichlet"))
@@ -237,8 +247,9 @@ def plot_poisson(rows: list[dict], path: Path) -> None:
 
 
 def plot_problem(rows: list[dict], path: Path) -> None:
-    """One problem's error per scheme: each seed a marker, the median a bar, log y."""
-    problem = rows[0]["problem"]
+    """One column's error per scheme (a problem, or Poisson at one k): each seed a marker,
+    the median a bar, log y."""
+    problem, column = rows[0]["problem"], _column(rows[0])
     schemes = _schemes(rows)
     fig, ax = pyplot().subplots(figsize=(1.0 + 0.6 * len(schemes), 4.0))
     med = _medians(rows)
@@ -247,12 +258,12 @@ def plot_problem(rows: list[dict], path: Path) -> None:
         errs = [rel_l2_of(r) for r in rows if r["weighting"] == w]
         finite = [e for e in errs if math.isfinite(e)]
         ax.scatter([i] * len(finite), finite, color=color, marker=marker, s=18, zorder=3)
-        if math.isfinite(med[(problem, w)]):
-            ax.hlines(med[(problem, w)], i - 0.3, i + 0.3, color=color, lw=2)
-    seeds = len({r["seed"] for r in rows})
+        if math.isfinite(med[(column, w)]):
+            ax.hlines(med[(column, w)], i - 0.3, i + 0.3, color=color, lw=2)
+    at = f", k = {rows[0]['k']}, {rows[0]['epochs']} epochs" if problem == "poisson" else ""
     ax.set(yscale="log", xticks=range(len(schemes)), xlim=(-0.5, len(schemes) - 0.5),
            ylabel=METRICS[problem],
-           title=f"{TITLES[problem]}, {seeds} seed{'s' * (seeds > 1)} (bar: median)")
+           title=f"{TITLES[problem]}{at}, {_seeds(rows)} (bar: median)")
     ax.set_xticklabels(schemes, rotation=45, ha="right", fontsize=8)
     ax.title.set_fontsize(9)
     save_figure(fig, path, dpi=120)
@@ -263,8 +274,10 @@ def report(rows: list[dict], out: Path) -> str:
     write_text(Path(out) / "table.md", text + "\n")
     for p in _problems(rows):
         mine = [r for r in rows if r["problem"] == p]
-        if p == "poisson":
+        if p == "poisson" and len({r["k"] for r in mine}) > 1:
             plot_poisson(mine, Path(out) / "weighting.png")
+        elif p == "poisson":
+            plot_problem(mine, Path(out) / "weighting.png")
         else:
             plot_problem(mine, Path(out) / f"weighting-{p}.png")
     return text
