@@ -76,8 +76,8 @@ class Study:
     ``row_keys``: the keys every finished row holds besides its cell's, each with its type
     (``float`` also admits an int, and null, which a non-finite number is written as), or a
     function of the cell giving them when cells differ. Declared, it is checked on every row
-    read back or reused; without it, a reused row must hold what the other rows of cells with
-    the same configuration keys all hold, with values of the same kind.
+    read back or reused; without it, a reused row must hold what the other rows of cells of its
+    kind (the same keys and text values) all hold, with values of the same kind.
 
     ``pack`` (with ``run_group``): the keys in which cells may differ and still train together
     as one ensemble (``("seed",)``, say); the runner submits one task per group of cells equal
@@ -346,13 +346,12 @@ def _adopt(study: Study, cells: list[dict], path: str | Path, out: Path,
 def _unfit_rows(study: Study, cells: list[dict], candidates: dict[str, dict],
                 known: dict[str, dict]) -> list[tuple[str, str]]:
     """``(cell id, what is wrong)`` for each candidate row, in cell order: checked against the
-    study's declared keys, or else against the other ``known`` rows of cells with the same
-    configuration keys (which all come from one study, so what all of them hold, a finished
-    row holds)."""
+    study's declared keys, or else against the other ``known`` rows of cells of the same kind
+    (which all come from one study, so what all of them hold, a finished row holds)."""
     groups: dict[frozenset, list[dict]] = {}
     for cell in cells:
         if cell["id"] in known:
-            groups.setdefault(frozenset(cell), []).append(known[cell["id"]])
+            groups.setdefault(_kind_of(cell), []).append(known[cell["id"]])
     peers = {sig: _Peers(rows) for sig, rows in groups.items()}
     unfit = []
     for cell in cells:
@@ -361,10 +360,17 @@ def _unfit_rows(study: Study, cells: list[dict], candidates: dict[str, dict],
             continue
         expected = study.expected_keys(cell)
         problem = (_unfit(row, expected) if expected is not None
-                   else peers[frozenset(cell)].unfit(row))
+                   else peers[_kind_of(cell)].unfit(row))
         if problem:
             unfit.append((cell["id"], problem))
     return unfit
+
+
+def _kind_of(cell: dict) -> frozenset:
+    """Cells of one kind return rows of one shape: the same keys and the same text values (a
+    problem's or a scheme's name may change what a row holds; a seed or a size does not)."""
+    return frozenset((k, v if isinstance(v, str) else None) for k, v in cell.items()
+                     if k != "id")
 
 
 class _Peers:

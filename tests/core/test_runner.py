@@ -390,6 +390,23 @@ def test_a_study_may_declare_its_row_keys(row_keys, tmp_path, capsys):
     assert _calls(out) == calls
 
 
+def test_rows_of_cells_of_different_kinds_are_checked_apart_when_reused(tmp_path):
+    """A row is compared with rows of its own kind only: kind a's rows lack b's key "extra",
+    and with one seed each a-0 would otherwise be the one row lacking what the others hold.
+    Within a kind the check still holds."""
+    runner.run("runner-packed", tmp_path / "first", "ok", 2, cluster="none", progress=False)
+    rows = json.loads((tmp_path / "first" / "rows.json").read_text())
+    (tmp_path / "one.json").write_text(json.dumps([r for r in rows if r["seed"] == 0]))
+    runner.run("runner-packed", tmp_path / "again", "ok", 1, cluster="none", progress=False,
+               reuse=tmp_path / "one.json")
+    assert not (tmp_path / "again" / "calls.log").exists()
+    bad = [{k: v for k, v in r.items() if (r["id"], k) != ("b-1", "value")} for r in rows]
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="its row 'b-1' lacks 'value'"):
+        runner.run("runner-packed", tmp_path / "fresh", "ok", 2, cluster="none",
+                   progress=False, reuse=tmp_path / "bad.json")
+
+
 def test_a_packed_study_runs_one_task_per_group_and_only_the_unfinished_members(tmp_path):
     """Cells equal but in the pack keys go to run_group together; each still gets its row
     file, and a rerun with more seeds trains only the new members, as one group per kind."""
@@ -398,7 +415,7 @@ def test_a_packed_study_runs_one_task_per_group_and_only_the_unfinished_members(
     assert _calls(out) == ["a-0 a-1", "b-0 b-1"]
     rows = {r["id"]: r for r in json.loads((out / "rows.json").read_text())}
     assert rows["b-1"] == {"id": "b-1", "kind": "b", "seed": 1, "pid": os.getpid(), "value": 1.0,
-                           "members": 2}
+                           "members": 2, "extra": 1}
     assert all((out / i / "row.json").exists() for i in rows)
     runner.run("runner-packed", out, "ok", 3, cluster="none", progress=False)
     assert _calls(out)[2:] == ["a-2", "b-2"]
