@@ -82,7 +82,7 @@ def test_k6_size_has_five_seeds_for_the_schemes_near_id_and_three_for_the_others
     for c in study.cells("k6", None):
         assert (c["problem"], c["k"], c["epochs"]) == ("poisson", 6, 30001)
         seeds.setdefault(c["weighting"], []).append(c["seed"])
-    far = {"mgda", "gradnorm", "softadapt", "relobralo", "ntk"}
+    far = {"mgda", "gradnorm", "softadapt", "relobralo"}
     assert seeds == {w: list(range(3 if w in far else 5)) for w in RULES}
     # --seeds replaces the per-scheme counts too
     assert len(study.cells("k6", 2)) == 2 * len(RULES)
