@@ -65,7 +65,7 @@ def _num(x: float) -> str:
 #: seeds: numpy's SeedSequence takes non-negative integers, torch.manual_seed up to 2⁶⁴ − 1
 SEEDS = Interval(0, 2**63 - 1)
 _TYPE_NAMES = {int: "an integer", float: "a finite number", str: "a string", list: "a list",
-               bool: "true or false"}
+               bool: "true or false", dict: "a table of KEY = VALUE"}
 
 
 class Config:
@@ -90,7 +90,13 @@ class Config:
                 raise UserError(f"{path} is not valid TOML: {e}") from None
             except OSError as e:
                 raise UserError(f"cannot read config {path}: {e.strerror or e}") from None
-        values.update({k: v for k, v in overrides.items() if v is not None})
+        for key, value in overrides.items():
+            if value is None:
+                continue
+            # a table (the scene) takes the flags' keys over the file's, key by key
+            if isinstance(value, dict) and isinstance(values.get(key), dict):
+                value = {**values[key], **value}
+            values[key] = value
         known = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
         for key in values:
             if key not in known:
@@ -147,6 +153,22 @@ class Config:
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+
+def scene_pairs(pairs: Iterable[str]) -> dict[str, Any]:
+    """``--scene KEY=VALUE`` flags as a table; a VALUE is read as TOML reads it (``0.01``,
+    ``64``, ``true``, ``"periodic"``; a bare word is a string)."""
+    scene: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key.strip() or not text.strip():
+            raise UserError(f"--scene {pair!r} is not KEY=VALUE (for example --scene nu=0.01)")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        scene[key.strip()] = value
+    return scene
 
 
 def unwrap(hint: Any) -> tuple[type, bool]:

@@ -39,6 +39,21 @@ def out_option(p: argparse.ArgumentParser, default: str) -> None:
                    help=f"the run directory (default {default})")
 
 
+def scene_option(p: argparse.ArgumentParser) -> None:
+    """``--scene KEY=VALUE`` (repeatable): a scene parameter of the solver the command builds,
+    over the ``[scene]`` table of ``--config``; the solver checks it."""
+    p.add_argument("--scene", action="append", default=None, metavar="KEY=VALUE",
+                   help="a scene parameter of the solver (dt, n, nu, ...), over the [scene] "
+                   "table of --config; repeatable")
+
+
+def scene_of(args: argparse.Namespace) -> dict | None:
+    """The ``--scene`` flags as a table (None: none given)."""
+    from adjointsim.run import scene_pairs
+
+    return None if not args.scene else scene_pairs(args.scene)
+
+
 def seed_option(p: argparse.ArgumentParser, default: int | None = 0) -> None:
     p.add_argument("--seed", type=at_least(0, 2**63 - 1), default=default,
                    help=f"random seed, ≥ 0 (default {default})")

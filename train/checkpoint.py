@@ -117,3 +117,20 @@ def restore(module: Any, state: dict, path: Path) -> None:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise RunExists(f"{path} does not fit this version's {type(module).__name__} ({first}); "
                         "start the run again with --overwrite, or into another --out") from None
+
+
+class _Store:
+    """The torch layer's checkpoint format, for the run engine
+    (:class:`adjointsim.engine.CheckpointStore`)."""
+
+    @staticmethod
+    def save(payload: dict, path: Path) -> None:
+        save_checkpoint(payload, path)
+
+    @staticmethod
+    def load(path: Path, keys: Iterable[str], recover: str) -> dict:
+        return load_checkpoint(path, keys, recover)
+
+
+#: what a torch problem names as its ``STORE``
+STORE = _Store()

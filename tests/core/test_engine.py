@@ -1,0 +1,172 @@
+"""The run engine's claim rule, cadence and resume, on a toy problem without torch."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import pytest
+
+from adjointsim import engine
+from adjointsim.errors import RunExists, UserError
+from adjointsim.files import atomic_path
+from adjointsim.run import Config, Interval
+
+
+class JsonStore:
+    @staticmethod
+    def save(payload: dict, path: Path) -> None:
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(payload))
+
+    @staticmethod
+    def load(path: Path, keys, recover: str) -> dict:
+        return json.loads(path.read_text())
+
+
+@dataclass
+class CountConfig(Config):
+    epochs: int = 5
+    rate: float = 0.5
+    threads: int = 1
+    ACCEPTED: ClassVar = {"epochs": Interval(1), "rate": Interval(0), "threads": Interval(1)}
+
+
+class Count(engine.Problem):
+    """x ← x + rate · (1 − x), one epoch an update; stops on KeyboardInterrupt when asked."""
+
+    RESUMABLE = ("threads",)
+    EXTENDABLE = ("epochs",)
+    HISTORIES = {"history.csv": ("epoch", "x")}
+    RUN_FILES = ("x.txt",)
+    RESULT_KEYS = ("x",)
+    STORE = JsonStore()
+    UNIT = "epoch"
+    stop_at: int | None = None
+
+    def build(self):
+        self.x, self.epoch, self.rows = 0.0, 0, []
+
+    def total(self):
+        return self.config.epochs
+
+    def position(self):
+        return self.epoch
+
+    def update(self):
+        if self.epoch == self.stop_at:
+            raise KeyboardInterrupt
+        self.x += self.config.rate * (1 - self.x)
+        self.epoch += 1
+        self.rows.append({"epoch": self.epoch, "x": self.x})
+        return True
+
+    def finish(self):
+        return {"x": self.x}
+
+    def plot(self):
+        (self.out / "x.txt").write_text(str(self.x))
+
+    def state_dict(self):
+        return {"x": self.x, "epoch": self.epoch}
+
+    def load_state_dict(self, state):
+        self.x, self.epoch = state["x"], state["epoch"]
+
+    def histories(self):
+        return {"history.csv": self.rows}
+
+    def load_histories(self, histories):
+        self.rows = list(histories["history.csv"])
+
+
+def count(out, stop_at=None, **cfg):
+    p = Count(CountConfig(**cfg), out)
+    p.stop_at = stop_at
+    return p
+
+
+def test_fresh_run_writes_config_history_result(tmp_path):
+    result = engine.run(count(tmp_path / "r"), progress=False)
+    assert result["x"] == pytest.approx(1 - 0.5**5)
+    for name in ("config.json", "checkpoint.pt", "history.csv", "result.json", "x.txt"):
+        assert (tmp_path / "r" / name).exists()
+    assert len((tmp_path / "r" / "history.csv").read_text().splitlines()) == 6
+
+
+def test_interrupted_run_resumes_bit_identically(tmp_path):
+    whole = engine.run(count(tmp_path / "a"), progress=False)
+    with pytest.raises(KeyboardInterrupt, match="--resume"):
+        engine.run(count(tmp_path / "b", stop_at=3), progress=False)
+    assert not (tmp_path / "b" / "result.json").exists()
+    with pytest.raises(RunExists, match="unfinished run; continue it with --resume"):
+        engine.run(count(tmp_path / "b"), progress=False)
+    resumed = engine.run(count(tmp_path / "b", threads=2), resume=True, progress=False)
+    assert resumed["x"] == whole["x"]
+    assert (tmp_path / "a" / "history.csv").read_text() == \
+        (tmp_path / "b" / "history.csv").read_text()
+
+
+def test_finished_run_returned_refused_or_extended(tmp_path):
+    out = tmp_path / "r"
+    first = engine.run(count(out, epochs=2), progress=False)
+    assert engine.run(count(out, epochs=2), resume=True, progress=False) == first
+    with pytest.raises(RunExists, match="finished run; choose another --out"):
+        engine.run(count(out, epochs=2), progress=False)
+    with pytest.raises(RunExists, match="continue it to more with --resume"):
+        engine.run(count(out, epochs=4), progress=False)
+    with pytest.raises(RunExists, match="epochs = 2"):
+        engine.run(count(out, epochs=1), resume=True, progress=False)
+    longer = engine.run(count(out, epochs=4), resume=True, progress=False)
+    assert longer["x"] == engine.run(count(tmp_path / "s", epochs=4), progress=False)["x"]
+
+
+def test_foreign_and_other_configuration_refused(tmp_path):
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(RunExists, match="other files"):
+        engine.run(count(other), progress=False)
+    with pytest.raises(RunExists, match="other files"):
+        engine.run(count(other), overwrite=True, progress=False)
+    assert (other / "notes.txt").read_text() == "mine"
+    out = tmp_path / "r"
+    engine.run(count(out), progress=False)
+    with pytest.raises(RunExists, match="differs in rate"):
+        engine.run(count(out, rate=0.25), resume=True, progress=False)
+    result = engine.run(count(out, rate=0.25), overwrite=True, progress=False)
+    assert result["rate"] == 0.25
+    with pytest.raises(UserError, match="pass one"):
+        engine.run(count(out), resume=True, overwrite=True, progress=False)
+
+
+def test_resume_without_a_run_says_so(tmp_path):
+    with pytest.raises(UserError, match="holds no run to continue"):
+        engine.run(count(tmp_path / "none"), resume=True, progress=False)
+
+
+def test_zero_length_ensemble_refused(tmp_path):
+    with pytest.raises(UserError, match="at least one member"):
+        engine.run([], progress=False)
+
+
+def test_ensemble_members_keep_their_own_directories(tmp_path):
+    class Together:
+        def __init__(self, group):
+            self.group = group
+
+        def done(self):
+            return all(p.done() for p in self.group)
+
+        def update(self):
+            return all([p.update() for p in self.group])
+
+        def sync(self):
+            pass
+
+    members = [count(tmp_path / f"seed{k}", rate=r) for k, r in enumerate((0.5, 0.25))]
+    results = engine.run(members, progress=False, ensemble=Together)
+    assert [r["rate"] for r in results] == [0.5, 0.25]
+    assert results[1]["x"] == pytest.approx(1 - 0.75**5)
