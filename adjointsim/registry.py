@@ -53,3 +53,56 @@ def get(name: str) -> type[Stepper]:
 def all_classes() -> list[type[Stepper]]:
     """Every registered stepper class, sorted by name."""
     return [get(n) for n in names()]
+
+
+T = TypeVar("T", bound=type)
+
+
+class UnknownNameError(KeyError):
+    """A name nobody registered (a user error: the CLI prints it on one line)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class Registry:
+    """Classes that register themselves under their ``name``, one file each in ``package``
+    (imported on first use): the solvers' mechanism, for the training layer's problems
+    (controller tasks, neural-stepper problems, PINN and HIG problems)."""
+
+    def __init__(self, kind: str, package: str):
+        self.kind, self.package = kind, package
+        self._classes: dict[str, type] = {}
+
+    def register(self, cls: T) -> T:
+        """Class decorator: add ``cls`` under ``cls.name``."""
+        name = cls.name
+        if name in self._classes and self._classes[name] is not cls:
+            raise ValueError(f"{self.kind} name {name!r} is registered twice")
+        self._classes[name] = cls
+        return cls
+
+    def _load(self) -> None:
+        import importlib
+        import pkgutil
+
+        pkg = importlib.import_module(self.package)
+        for info in pkgutil.iter_modules(pkg.__path__):
+            if not info.name.startswith("_"):
+                importlib.import_module(f"{self.package}.{info.name}")
+
+    def names(self) -> list[str]:
+        """The registered names, in registration order (files in alphabetical order)."""
+        if not self._classes:
+            self._load()
+        return list(self._classes)
+
+    def get(self, name: str) -> type:
+        """The class registered under ``name``."""
+        if name not in self.names():
+            raise UnknownNameError(f"unknown {self.kind} {name!r}; choose from "
+                                   f"{', '.join(self.names())}")
+        return self._classes[name]
+
+    def items(self) -> list[tuple[str, type]]:
+        return [(n, self._classes[n]) for n in self.names()]
