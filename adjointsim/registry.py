@@ -73,6 +73,7 @@ class Registry:
     def __init__(self, kind: str, package: str):
         self.kind, self.package = kind, package
         self._classes: dict[str, type] = {}
+        self._loaded = False
 
     def register(self, cls: T) -> T:
         """Class decorator: add ``cls`` under ``cls.name``."""
@@ -93,7 +94,8 @@ class Registry:
 
     def names(self) -> list[str]:
         """The registered names, in registration order (files in alphabetical order)."""
-        if not self._classes:
+        if not self._loaded:
+            self._loaded = True
             self._load()
         return list(self._classes)
 
