@@ -73,9 +73,11 @@ def run(args: argparse.Namespace) -> int:
 def _ensemble(args: argparse.Namespace, cfg, out: Path) -> int:
     """``--seeds``: one run per seed in ``out/seedN``, trained as one ensemble."""
     from adjointsim.files import write_json
+    from adjointsim.train.ensemble import train_ensemble
 
     cfgs, results = train_seeds(args, cfg, out,
-                                f"{cfg.task} ({cfg.level}), mode {cfg.mode}, clip {cfg.clip}")
+                                f"{cfg.task} ({cfg.level}), mode {cfg.mode}, clip {cfg.clip}",
+                                train_ensemble)
     if args.json is not None:
         write_json(args.json, results)
     for c, r in zip(cfgs, results):

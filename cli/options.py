@@ -66,14 +66,13 @@ def seeds_option(p: argparse.ArgumentParser) -> None:
                    "in --out/seedN (replaces --seed)")
 
 
-def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str
-                ) -> tuple[list, list]:
+def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
+                train_members: Callable[..., list]) -> tuple[list, list]:
     """``--seeds``: ``cfg`` once per seed, each run in ``out/seedN``, trained as one ensemble
-    (announced as ``what``); returns the members' configs and what each run returns."""
+    (announced as ``what``) by ``train_members(cfgs, resume=, progress=, overwrite=)``;
+    returns the members' configs and what each run returns."""
     from adjointsim.errors import UserError
     from adjointsim.run import require_checkpoint, run_errors
-    from adjointsim.train.ensemble import train_ensemble
-
     if args.seed is not None:
         raise UserError("--seed and --seeds: pass one")
     if len(set(args.seeds)) < len(args.seeds):
@@ -84,7 +83,7 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str
             require_checkpoint(Path(c.out))
     print(f"{what}: an ensemble of {len(cfgs)} seeds", flush=True)
     with run_errors(out):
-        results = train_ensemble(cfgs, resume=args.resume, progress=args.progress,
+        results = train_members(cfgs, resume=args.resume, progress=args.progress,
                                  overwrite=args.overwrite)
     return cfgs, results
 

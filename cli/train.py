@@ -52,8 +52,11 @@ def run(args: argparse.Namespace) -> int:
     cfg = TrainConfig.load(args.config, **values)
     out = Path(cfg.out)
     if args.seeds:
+        from adjointsim.train.ensemble import train_ensemble
+
         cfgs, _ = train_seeds(args, cfg, out,
-                              f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}")
+                              f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}",
+                              train_ensemble)
         results = [_result(c) for c in cfgs]
         if args.json is not None:
             from adjointsim.files import write_json
