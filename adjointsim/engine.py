@@ -346,14 +346,14 @@ def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: 
     todo = [k for k, c in enumerate(claims) if c.result is None]
     for k in todo:
         members[k].build()
-    for k in todo:
-        dirs[k].start(claims[k])
-        if claims[k].checkpoint is not None:
-            dirs[k].restore(claims[k].checkpoint)
-    groups: dict[float, list[int]] = {}
-    for k in todo:
-        groups.setdefault(members[k].position(), []).append(k)
-    with _errors([dirs[k] for k in todo]):
+    with _errors([dirs[k] for k in todo]):  # an --out that cannot be written is named
+        for k in todo:
+            dirs[k].start(claims[k])
+            if claims[k].checkpoint is not None:
+                dirs[k].restore(claims[k].checkpoint)
+        groups: dict[float, list[int]] = {}
+        for k in todo:
+            groups.setdefault(members[k].position(), []).append(k)
         for idx in groups.values():
             group = [members[k] for k in idx]
             updater = (ensemble(group) if ensemble is not None and len(group) > 1

@@ -147,6 +147,12 @@ def test_resume_without_a_run_says_so(tmp_path):
         engine.run(count(tmp_path / "none"), resume=True, progress=False)
 
 
+def test_an_out_that_is_a_file_is_named(tmp_path):
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(OSError, match="cannot write the run to --out .*afile"):
+        engine.run(count(tmp_path / "afile"), progress=False)
+
+
 def test_zero_length_ensemble_refused(tmp_path):
     with pytest.raises(UserError, match="at least one member"):
         engine.run([], progress=False)
