@@ -105,7 +105,12 @@ class Problem:
         raise NotImplementedError
 
     def done(self) -> bool:
-        return self.position() >= self.total()
+        return self.position() >= self.total() or self.paused()
+
+    def paused(self) -> bool:
+        """Whether the run stops here, before its end, at a limit of this invocation (an
+        iteration cap): it is saved and left unfinished, to be continued with ``resume``."""
+        return False
 
     # what it does
     def build(self) -> None:
@@ -333,7 +338,7 @@ def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: 
         progress: bool = True,
         ensemble: Callable[[list[Problem]], Updater] | None = None) -> Any:
     """Run ``problems`` (one, or an ensemble's members) to their results; returns the result
-    (one problem) or the list of results. Every directory is claimed before any is written;
+    (one problem) or the list of results (None for a run :meth:`Problem.paused`). Every directory is claimed before any is written;
     members at the same point train together through ``ensemble`` (one vectorised updater),
     a member resumed from another point trains with the members at its point."""
     single = isinstance(problems, Problem)
@@ -362,7 +367,10 @@ def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: 
                 raise UserError(f"{type(group[0]).__name__} runs train one at a time")
             _loop(updater, group, [dirs[k] for k in idx], progress)
             for k in idx:
-                results[k] = dirs[k].finish()
+                if members[k].paused():
+                    dirs[k].save()
+                else:
+                    results[k] = dirs[k].finish()
     return results[0] if single else results
 
 

@@ -45,6 +45,10 @@ class Count(engine.Problem):
     STORE = JsonStore()
     UNIT = "epoch"
     stop_at: int | None = None
+    cap: int | None = None
+
+    def paused(self):
+        return self.cap is not None and self.cap <= self.epoch < self.total()
 
     def build(self):
         self.x, self.epoch, self.rows = 0.0, 0, []
@@ -176,3 +180,16 @@ def test_ensemble_members_keep_their_own_directories(tmp_path):
     results = engine.run(members, progress=False, ensemble=Together)
     assert [r["rate"] for r in results] == [0.5, 0.25]
     assert results[1]["x"] == pytest.approx(1 - 0.75**5)
+
+
+def test_a_paused_run_is_saved_unfinished_and_resumes(tmp_path):
+    whole = engine.run(count(tmp_path / "a"), progress=False)
+    capped = count(tmp_path / "b")
+    capped.cap = 2
+    capped.update = lambda: Count.update(capped) and False  # no boundary: saved at the pause
+    assert engine.run(capped, progress=False) is None
+    assert not (tmp_path / "b" / "result.json").exists()
+    assert len((tmp_path / "b" / "history.csv").read_text().splitlines()) == 3
+    with pytest.raises(RunExists, match="unfinished run; continue it with --resume"):
+        engine.run(count(tmp_path / "b"), progress=False)
+    assert engine.run(count(tmp_path / "b"), resume=True, progress=False)["x"] == whole["x"]
