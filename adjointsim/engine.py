@@ -338,9 +338,10 @@ def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: 
         progress: bool = True,
         ensemble: Callable[[list[Problem]], Updater] | None = None) -> Any:
     """Run ``problems`` (one, or an ensemble's members) to their results; returns the result
-    (one problem) or the list of results (None for a run :meth:`Problem.paused`). Every directory is claimed before any is written;
-    members at the same point train together through ``ensemble`` (one vectorised updater),
-    a member resumed from another point trains with the members at its point."""
+    (one problem) or the list of results (None for a run :meth:`Problem.paused`). Every
+    directory is claimed before any is written; members at the same point train together
+    through ``ensemble`` (one vectorised updater), a member resumed from another point trains
+    with the members at its point."""
     single = isinstance(problems, Problem)
     members = [problems] if single else list(problems)
     if not members:
