@@ -212,15 +212,17 @@ class RunDir:
         return keys - set(theirs) <= set(self.problem.RESUMABLE) and set(theirs) <= set(
             self.config)
 
+    def holds(self) -> bool:
+        """Whether the directory holds a run (its config, checkpoint or result)."""
+        return any((self.out / name).exists() for name in (CONFIG, CHECKPOINT, RESULT))
+
     def claim(self, resume: bool, overwrite: bool) -> Claim:
         """The claim rule: see the module's doc. Nothing is written here."""
         if resume and overwrite:
             raise UserError("--resume continues a run and --overwrite discards it: pass one")
         out, again = self.out, "choose another --out, or start it again with --overwrite"
         theirs = self.recorded()
-        holds = (out / CONFIG).exists() or (out / CHECKPOINT).exists() \
-            or (out / RESULT).exists()
-        if not holds:
+        if not self.holds():
             if out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir()):
                 raise RunExists(f"{out} holds other files and no run's config.json; choose a "
                                 "new or empty --out")
@@ -347,7 +349,10 @@ def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: 
     if not members:
         raise UserError("an ensemble needs at least one member")
     dirs = [RunDir(p) for p in members]
-    claims = [d.claim(resume, overwrite) for d in dirs]
+    # --resume continues the members that hold a run; a member without one (a seed added, its
+    # directory deleted) starts fresh beside them; nothing to continue at all is refused
+    some = any(d.holds() for d in dirs)
+    claims = [d.claim(resume and (d.holds() or not some), overwrite) for d in dirs]
     results: list[dict | None] = [c.result for c in claims]
     todo = [k for k, c in enumerate(claims) if c.result is None]
     for k in todo:

@@ -193,3 +193,16 @@ def test_a_paused_run_is_saved_unfinished_and_resumes(tmp_path):
     with pytest.raises(RunExists, match="unfinished run; continue it with --resume"):
         engine.run(count(tmp_path / "b"), progress=False)
     assert engine.run(count(tmp_path / "b"), resume=True, progress=False)["x"] == whole["x"]
+
+
+def test_resumed_ensemble_starts_an_added_member_fresh(tmp_path):
+    """--resume continues the members that hold a run and starts one without (a seed added,
+    its directory deleted) beside them, so neither spelling of the command refuses it; an
+    ensemble with nothing to continue is refused."""
+    engine.run([count(tmp_path / "seed0", epochs=2)], progress=False)
+    members = [count(tmp_path / f"seed{k}", epochs=3) for k in (0, 1)]
+    results = engine.run(members, resume=True, progress=False)
+    assert [r["x"] for r in results] == [pytest.approx(1 - 0.5**3)] * 2
+    assert len((tmp_path / "seed0" / "history.csv").read_text().splitlines()) == 4
+    with pytest.raises(UserError, match="holds no run to continue"):
+        engine.run([count(tmp_path / f"new{k}") for k in (0, 1)], resume=True, progress=False)
