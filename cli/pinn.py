@@ -16,14 +16,10 @@ _HELPS = {
                  "config)",
     "reference": "the inverse-Dirichlet reference term: the problem's (res) or the term of "
                  "largest gradient spread (max)",
-    "epochs": "0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000, "
-              "sequential 3000)",
     "seed": "draws the points and the initial network (Sobolev: the target too)",
     "lr": "Adam's learning rate (Poisson and Sobolev: × 0.1 at epochs 10k, 20k and 30k)",
     "every": "epochs between weight refreshes",
     "alpha": "the weights' moving-average factor",
-    "width": "hidden units per layer; 0: the problem's (poisson 50, sobolev 64, ks-inverse 50, "
-             "sequential 50)",
     "depth": "hidden layers",
     "collocation": "collocation points (Poisson: drawn from the 100 x 100 grid)",
     "edge_points": "points per boundary edge (ks-inverse: times of the periodicity term)",
@@ -34,26 +30,30 @@ _HELPS = {
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    from adjointsim.train.pinn import PROBLEMS, PinnConfig
+    from adjointsim.train.pinn import PinnConfig
+    from adjointsim.train.pinns import PROBLEMS
 
-    p.add_argument("problem", nargs="?", choices=PROBLEMS, default=None,
+    problems = PROBLEMS.items()
+
+    def each(key: str) -> str:
+        return ", ".join(f"{name} {getattr(cls, key)}" for name, cls in problems)
+
+    p.add_argument("problem", nargs="?", choices=PROBLEMS.names(), default=None,
                    help="the problem (default poisson, or the --config file's)")
     run_options(p, "runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
-    config_flags(p, PinnConfig, PinnConfig.ACCEPTED, skip=("problem",), helps=_HELPS)
+    helps = {**_HELPS, "epochs": f"0: the problem's ({each('epochs')})",
+             "width": f"hidden units per layer; 0: the problem's ({each('width')})"}
+    config_flags(p, PinnConfig, PinnConfig.ACCEPTED, skip=("problem",), helps=helps)
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint, run_errors
     from adjointsim.train import pinn
 
     cfg = pinn.PinnConfig.load(args.config, **overrides(args, pinn.PinnConfig))
     name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
     out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
-    if args.resume:
-        require_checkpoint(out)
-    with run_errors(out):
-        result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,
-                                overwrite=args.overwrite)
+    result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,
+                            overwrite=args.overwrite)
     write_result(args, result)
     if result["diverged"]:
         print(f"{name} {cfg.weighting}: diverged after {pinn.MAX_SKIPS} non-finite losses in a "

@@ -1,6 +1,6 @@
-"""The PINNs (train/pinn.py, cli/pinn.py): problems, training loop, checkpoints, bad input, the
-command's run lifecycle (--resume, --overwrite, --config) and tiny end-to-end studies. Tiny
-networks and point sets: seconds."""
+"""The PINNs (train/pinn.py, train/pinns/, cli/pinn.py): problems, the training run on the
+engine, checkpoints and kill/resume, bad input, the command's run lifecycle (--resume,
+--overwrite, --config) and tiny end-to-end studies. Tiny networks and point sets: seconds."""
 
 import json
 import math
@@ -10,10 +10,11 @@ import torch
 
 import adjointsim.run
 from adjointsim.cli import main as cli
-from adjointsim.errors import RunExists
+from adjointsim.errors import RunExists, UserError
 from adjointsim.run import read_history
-from adjointsim.train import pinn
+from adjointsim.train import pinn, pinns
 from adjointsim.train.pinn import PinnConfig, make_problem, train_run
+from adjointsim.train.pinns.poisson import Poisson
 
 TINY = {"width": 6, "depth": 2, "collocation": 40, "edge_points": 6, "log_every": 2}
 TINY_ARGS = ["--width", "6", "--depth", "2", "--collocation", "40", "--edge-points", "6",
@@ -101,7 +102,7 @@ def test_ctrl_c_inside_an_update_resumes_without_repeating_it(tmp_path, monkeypa
 
 def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     straight = train_run(_cfg(weighting="maxavg"), tmp_path / "a", progress=False, plot=False)
-    real, calls = pinn.Poisson.losses, []
+    real, calls = Poisson.losses, []
 
     def interrupt(self, model, route="taylor", terms=()):
         calls.append(1)
@@ -109,10 +110,10 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(self, model, route)
 
-    monkeypatch.setattr(pinn.Poisson, "losses", interrupt)
-    with pytest.raises(KeyboardInterrupt):
+    monkeypatch.setattr(Poisson, "losses", interrupt)
+    with pytest.raises(KeyboardInterrupt, match="--resume"):
         train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
-    monkeypatch.setattr(pinn.Poisson, "losses", real)
+    monkeypatch.setattr(Poisson, "losses", real)
     with pytest.raises(RunExists, match="--resume"):
         train_run(_cfg(weighting="maxavg"), tmp_path / "b", progress=False, plot=False)
     with pytest.raises(RunExists, match="run of another configuration .*differs in seed"):
@@ -120,6 +121,11 @@ def test_interrupted_run_resumes_to_the_same_result(tmp_path, monkeypatch):
     again = train_run(_cfg(weighting="maxavg"), tmp_path / "b", resume=True, progress=False,
                       plot=False)
     assert again["rel_l2"] == straight["rel_l2"] and again["weights"] == straight["weights"]
+    assert again["phases"] == straight["phases"]
+    for name in ("history.csv", "weights.csv"):  # bit-identical rows, but for the timing
+        rows = [[{k: v for k, v in h.items() if k != "seconds"}
+                 for h in read_history(tmp_path / d / name)] for d in ("a", "b")]
+        assert rows[0] == rows[1] and len(rows[0]) > 3, name
 
 
 def test_threads_may_change_on_resume_and_runs_recorded_without_the_key_are_kept(tmp_path):
@@ -141,7 +147,7 @@ def test_threads_may_change_on_resume_and_runs_recorded_without_the_key_are_kept
 
 
 def test_non_finite_losses_skip_the_update_with_a_warning(tmp_path, monkeypatch):
-    real, calls = pinn.Poisson.losses, []
+    real, calls = Poisson.losses, []
 
     def flaky(self, model, route="taylor", terms=()):
         calls.append(1)
@@ -150,7 +156,7 @@ def test_non_finite_losses_skip_the_update_with_a_warning(tmp_path, monkeypatch)
             terms["bc"] = terms["bc"] * math.nan
         return terms
 
-    monkeypatch.setattr(pinn.Poisson, "losses", flaky)
+    monkeypatch.setattr(Poisson, "losses", flaky)
     with pytest.warns(RuntimeWarning, match="non-finite loss"):
         result = train_run(_cfg(), tmp_path / "r", progress=False, plot=False)
     assert result["skipped"] == 2 and not result["diverged"] and math.isfinite(result["rel_l2"])
@@ -160,7 +166,7 @@ def test_lasting_non_finite_losses_end_the_run_as_diverged(tmp_path, monkeypatch
     def broken(self, model, route="taylor", terms=()):
         return {"res": torch.tensor(math.inf), "bc": torch.tensor(1.0)}
 
-    monkeypatch.setattr(pinn.Poisson, "losses", broken)
+    monkeypatch.setattr(Poisson, "losses", broken)
     with pytest.warns(RuntimeWarning):
         code = cli(["pinn", "poisson", *TINY_ARGS, "--epochs", "5", "--out", str(tmp_path)])
     assert code == 1 and "diverged" in capsys.readouterr().out
@@ -180,7 +186,7 @@ def test_damaged_run_files_are_clear_errors(tmp_path):
     train_run(_cfg(), tmp_path / "r", progress=False, plot=False)
     ckpt, result = tmp_path / "r" / "checkpoint.pt", tmp_path / "r" / "result.json"
     # a flipped bit in a weight: torch loads it, the digest does not
-    weights = torch.load(ckpt, weights_only=False)["model"]
+    weights = torch.load(ckpt, weights_only=False)["state"]["model"]
     raw = bytearray(ckpt.read_bytes())
     raw[raw.find(weights["mlp.net.0.weight"].numpy().tobytes()) + 1] ^= 1
     ckpt.write_bytes(bytes(raw))
@@ -207,7 +213,7 @@ def test_a_run_stopped_after_its_last_checkpoint_resumes_to_the_same_result(tmp_
 def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
     (tmp_path / "theirs").mkdir()
     (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
-    with pytest.raises(RunExists, match="another run or other files .*differs in"):
+    with pytest.raises(RunExists, match="another command's run or other files"):
         train_run(_cfg(), tmp_path / "theirs", progress=False)
     assert (tmp_path / "theirs" / "config.json").read_text() == '{"precious": true}'
     (tmp_path / "afile").write_text("")
@@ -218,9 +224,22 @@ def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
     def stop(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pinn, "train_run", stop)
-    assert cli(["pinn", "poisson", *TINY_ARGS, "--out", str(tmp_path / "new")]) == 130
-    assert "nothing to resume" in capsys.readouterr().err
+    real = pinn.PinnRun.update
+    monkeypatch.setattr(pinn.PinnRun, "update", stop)
+    args = ["pinn", "poisson", *TINY_ARGS, "--epochs", "4", "--out", str(tmp_path / "new")]
+    assert cli(args) == 130  # Ctrl-C saves the checkpoint: the command says how to go on
+    assert "the checkpoint is saved; continue with the same command and --resume" in \
+        capsys.readouterr().err
+    monkeypatch.setattr(pinn.PinnRun, "update", real)
+    assert cli([*args, "--resume"]) == 0
+
+
+def test_a_config_is_checked_before_anything_is_written(tmp_path):
+    with pytest.raises(UserError, match="config key 'k': 7 is not an integer in"):
+        train_run(_cfg(k=7), tmp_path / "r", progress=False)
+    with pytest.raises(UserError, match="the sequential problem has no analytic weights"):
+        train_run(_cfg(problem="sequential", weighting="ntk"), tmp_path / "r", progress=False)
+    assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.parametrize("args, message", [
@@ -258,10 +277,12 @@ def test_help_says_what_0_means_and_lists_the_choices(capsys, monkeypatch):
         cli(["pinn", "--help"])
     assert e.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    assert ("0: the problem's (poisson 30001, sobolev 30001, ks-inverse 6000, sequential 3000)"
+    # every registered problem, with its own defaults
+    assert pinns.PROBLEMS.names() == ["ks-inverse", "poisson", "sequential", "sobolev"]
+    assert ("0: the problem's (ks-inverse 6000, poisson 30001, sequential 3000, sobolev 30001)"
             in text)
-    assert "0: the problem's (poisson 50, sobolev 64, ks-inverse 50, sequential 50)" in text
-    for choices in ("{poisson,sobolev,ks-inverse,sequential}", "{res,max}", "{taylor,autograd}",
+    assert "0: the problem's (ks-inverse 50, poisson 50, sequential 50, sobolev 64)" in text
+    for choices in ("{ks-inverse,poisson,sequential,sobolev}", "{res,max}", "{taylor,autograd}",
                     "{uniform,epsilon-optimal,inverse-dirichlet,max-avg,mgda,gradnorm,softadapt,"
                     "relobralo,ntk,pcgrad,config,id,maxavg,analytic,fixed}"):
         assert choices in text
@@ -283,8 +304,8 @@ def test_absurd_sizes_are_refused_before_anything_is_allocated(args, message, ca
         raise AssertionError("allocated before the sizes were checked")
 
     monkeypatch.setattr(adjointsim.run, "physical_memory", lambda: 16 * 2**30)
-    monkeypatch.setattr(pinn, "MLP", allocate)
-    monkeypatch.setattr(pinn.Poisson, "__init__", allocate)
+    monkeypatch.setattr(pinns, "MLP", allocate)
+    monkeypatch.setattr(Poisson, "__init__", allocate)
     assert cli(["pinn", "poisson", *args, "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
@@ -295,7 +316,7 @@ def test_resume_without_a_checkpoint_is_one_line(tmp_path, capsys):
     for out in (tmp_path / "none", tmp_path):
         assert cli(["pinn", "poisson", *TINY_ARGS, "--resume", "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "holds no checkpoint to continue from" in err[0]
+        assert len(err) == 1 and "holds no run to continue" in err[0]
     assert not (tmp_path / "none").exists()
 
 
@@ -304,7 +325,8 @@ def test_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
     assert cli(args) == 0
     first = json.loads((tmp_path / "r" / "result.json").read_text())
     assert cli([*args, "--epochs", "6"]) == 2
-    assert "finished run" in capsys.readouterr().err
+    assert "holds a run of another configuration (differs in epochs)" in \
+        capsys.readouterr().err
     assert cli([*args, "--epochs", "6", "--overwrite"]) == 0
     again = json.loads((tmp_path / "r" / "result.json").read_text())
     assert again["epochs"] == 6 and again["rel_l2"] != first["rel_l2"]
@@ -320,7 +342,7 @@ def test_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
     (tmp_path / "theirs").mkdir()
     (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
     assert cli([*args[:-1], str(tmp_path / "theirs"), "--overwrite"]) == 2
-    assert "another run or other files" in capsys.readouterr().err
+    assert "another command's run or other files" in capsys.readouterr().err
     assert (tmp_path / "theirs" / "config.json").read_text() == '{"precious": true}'
 
 

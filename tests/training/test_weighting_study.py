@@ -49,7 +49,7 @@ def test_tiny_size_runs_end_to_end_and_reuses_finished_cells(tmp_path, capsys, m
     def refuse(*a, **kw):
         raise AssertionError("a finished cell was run again")
 
-    monkeypatch.setattr(study, "train_run", refuse)
+    monkeypatch.setattr(study, "train_cell", refuse)
     monkeypatch.setattr(study, "train_controller", refuse)
     assert cli(args) == 0
     assert json.loads((tmp_path / "rows.json").read_text()) == rows

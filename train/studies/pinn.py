@@ -1,8 +1,8 @@
 """The ``pinn-poisson`` study: the multi-scale Poisson PINN over k × weighting × seeds
 (``adjointsim study pinn-poisson --size quick``), against the authors' reported errors.
 
-Each cell is one ``adjointsim pinn poisson`` run (:func:`adjointsim.train.pinn.train_run`) in its
-own directory; its row holds ``k``, ``weighting``, ``seed``, ``epochs`` and the final ``rel_l2``
+Each cell is one ``adjointsim pinn poisson`` run (:func:`adjointsim.train.pinn.train_cell`) in
+its own directory; its row holds ``k``, ``weighting``, ``seed``, ``epochs`` and the final ``rel_l2``
 on the 100 × 100 grid. The report tables the median over seeds [min, max] per k and weighting
 next to the authors' figure (30,001 epochs, mean of 5 seeds), says per k whether ID is below
 uniform and max/avg, and plots the error against k.
@@ -17,7 +17,8 @@ from statistics import median
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
-from ..pinn import REPORTED, PinnConfig, train_run
+from ..pinn import PinnConfig, train_cell
+from ..pinns.poisson import REPORTED
 
 WEIGHTINGS = ("uniform", "inverse-dirichlet", "max-avg", "fixed")
 #: per size: wavenumbers, weightings, seeds, epochs, network and point-set overrides
@@ -54,9 +55,7 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot")}
-    cfg = PinnConfig(problem="poisson", **keys)
-    result = train_run(cfg, Path(run_dir), resume=True, progress=False,
-                       plot=cell.get("plot", True))
+    result = train_cell(PinnConfig(problem="poisson", **keys), run_dir, cell.get("plot", True))
     return {"rel_l2": result["rel_l2"], "diverged": result["diverged"],
             "seconds": result["seconds"]}
 
@@ -159,7 +158,8 @@ register_study(Study(name="pinn-poisson", sizes=tuple(SIZES), cells=cells, run_c
 
 
 # ----------------------------------------------------------------------------- sequential KS
-#: the ``pinn-ks-inverse`` study (:class:`adjointsim.train.pinn.KSInverse`): weightings × seeds
+#: the ``pinn-ks-inverse`` study (:class:`adjointsim.train.pinns.ks_inverse.KSInverse`):
+#: weightings × seeds
 KS_SIZES = {
     "tiny": {"weightings": ("uniform", "inverse-dirichlet"), "seeds": 1, "epochs": 9,
              "net": {"width": 8, "depth": 2, "collocation": 64, "edge_points": 8,
@@ -179,8 +179,7 @@ def ks_cells(size: str, seeds: int | None) -> list[dict]:
 
 def ks_run_cell(cell: dict, run_dir: Path) -> dict:
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot")}
-    result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
-                       plot=cell.get("plot", True))
+    result = train_cell(PinnConfig(**keys), run_dir, cell.get("plot", True))
     phases = result["phases"]
     return {"rel_l2": result["rel_l2"], "diverged": result["diverged"],
             "seconds": result["seconds"], **result["coefficients"],

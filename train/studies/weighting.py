@@ -1,14 +1,14 @@
 """The ``weighting`` study: every loss-weighting scheme of
-:data:`adjointsim.train.weighting.SCHEMES` on the PINN problems of :mod:`adjointsim.train.pinn`
+:data:`adjointsim.train.weighting.SCHEMES` on the PINN problems of :mod:`adjointsim.train.pinns`
 and on a differentiable-physics loss, the guidance task of :mod:`adjointsim.train.control`
 (``adjointsim study weighting --quick``).
 
 A cell is one problem × scheme × seed (× wavenumber k for Poisson): one
-:func:`adjointsim.train.pinn.train_run` or, for ``guidance``, one
+:func:`adjointsim.train.pinn.train_cell` or, for ``guidance``, one
 :func:`adjointsim.train.control.train_controller` (gradient flow R, r_c = 1, its terms
 ``tracking`` and ``control``), in its own directory (resumed from its checkpoint when
-interrupted). ``epsilon-optimal`` (analytic weights) and ``ntk`` (per-sample residuals) exist
-for Poisson only, so the other problems' cells skip them.
+interrupted). A problem's cells take the schemes it offers: ``epsilon-optimal`` (analytic
+weights) and ``ntk`` (per-sample residuals) exist for Poisson only.
 
 Each row holds ``problem``, ``weighting``, ``seed``, ``epochs``, ``k`` (Poisson only) and:
 
@@ -43,8 +43,9 @@ from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
 from ..control import ControlConfig, train_controller
-from ..pinn import EPOCHS, NEEDS_POISSON, PinnConfig, train_run
-from ..weighting import RULES
+from ..pinn import PinnConfig, train_cell
+from ..pinns import PROBLEMS
+from ..weighting import GENERIC, RULES
 from .pinn import median_range, rel_l2_of
 
 #: the authors' schedule (Poisson 30,001 epochs) cut to the first 3000, where the lr is 1e-3
@@ -70,7 +71,7 @@ SIZES: dict[str, dict] = {
     # k = 6 on the authors' schedule, every scheme: about 7 minutes a cell here. 5 seeds, but
     # 3 (``few_seeds``) for the schemes whose median over 3 seeds is more than 2x
     # inverse-Dirichlet's; NTK, at 2.1x with seeds from 0.005 to 0.05, gets 5
-    "k6": {"poisson": {6: EPOCHS["poisson"]}, "others": {}, "schemes": RULES,
+    "k6": {"poisson": {6: PROBLEMS.get("poisson").epochs}, "others": {}, "schemes": RULES,
            "seeds": (5, 0), "few_seeds": (3, ("mgda", "gradnorm", "softadapt", "relobralo")),
            "net": {}, "control": {}},
     # the rest of the Poisson table: k = 1..5 on the reduced schedule, every scheme (about
@@ -81,9 +82,9 @@ SIZES: dict[str, dict] = {
     # 0.74 at 200 epochs, 0.035 at 1400), about 6 minutes a cell here
     "sobolev": {"poisson": {}, "others": {"sobolev": 1500}, "schemes": RULES,
                 "seeds": (0, 1), "net": {}, "control": {}},
-    "full": {"poisson": {**{k: REDUCED for k in range(1, 6)}, 6: EPOCHS["poisson"]},
-             "others": {"sobolev": EPOCHS["sobolev"], "ks-inverse": EPOCHS["ks-inverse"],
-                        "guidance": 100},
+    "full": {"poisson": {**{k: REDUCED for k in range(1, 6)}, 6: PROBLEMS.get("poisson").epochs},
+             "others": {"sobolev": PROBLEMS.get("sobolev").epochs,
+                        "ks-inverse": PROBLEMS.get("ks-inverse").epochs, "guidance": 100},
              "schemes": RULES, "seeds": (3, 3), "net": {},
              "control": {"train": 256, "test": 256}},
 }
@@ -116,8 +117,14 @@ def cells(size: str, seeds: int | None) -> list[dict]:
             extra = spec["control"] if problem == "guidance" else spec["net"]
             out += [{"id": f"{problem}-{w}-s{s}", "problem": problem, "weighting": w,
                      "seed": s, "epochs": epochs, **extra}
-                    for w in spec["schemes"] if w not in NEEDS_POISSON]
+                    for w in spec["schemes"] if w in offered(problem)]
     return out
+
+
+def offered(problem: str) -> tuple[str, ...]:
+    """The schemes a problem offers: a PINN problem's own, the guidance task's the generic
+    ones."""
+    return GENERIC if problem == "guidance" else PROBLEMS.get(problem).schemes()
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
@@ -133,8 +140,7 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
                 "control": result["test_terms"]["control"], "weights": result["weights"],
                 "wall_s": time.perf_counter() - start}
     keys["problem"] = cell["problem"]
-    result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
-                       plot=cell.get("plot", True))
+    result = train_cell(PinnConfig(**keys), run_dir, cell.get("plot", True))
     row = {"rel_l2": result["rel_l2"], "metric": METRICS[cell["problem"]],
            "diverged": result["diverged"], "train_s": result["seconds"]}
     if cell["problem"] == "ks-inverse":
@@ -301,8 +307,9 @@ FORGETTING: dict[str, dict] = {
     # 500 epochs per phase, 1000 points for the synthetic problem: about 1 CPU-minute a cell
     "quick": {"problems": {"sequential": 1500, "ks-inverse": 1500}, "seeds": 1,
               "net": {"collocation": 1000}},
-    "full": {"problems": {"sequential": EPOCHS["sequential"],
-                          "ks-inverse": EPOCHS["ks-inverse"]}, "seeds": 3, "net": {}},
+    "full": {"problems": {"sequential": PROBLEMS.get("sequential").epochs,
+                          "ks-inverse": PROBLEMS.get("ks-inverse").epochs}, "seeds": 3,
+             "net": {}},
 }
 
 
@@ -318,8 +325,7 @@ def forgetting_cells(size: str, seeds: int | None) -> list[dict]:
 def forgetting_cell(cell: dict, run_dir: Path) -> dict:
     start = time.perf_counter()
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot", "variant")}
-    result = train_run(PinnConfig(**keys), Path(run_dir), resume=True, progress=False,
-                       plot=cell.get("plot", True))
+    result = train_cell(PinnConfig(**keys), run_dir, cell.get("plot", True))
     phases = result["phases"]
     terms = [t for t in phases[-1]["active"]]
     row = {"rel_l2": result["rel_l2"], "diverged": result["diverged"],
