@@ -27,14 +27,15 @@ def run(args: argparse.Namespace) -> int:
     from adjointsim.run import holds_run
     from adjointsim.train import data
     from adjointsim.train.evaluate import evaluate
-    from adjointsim.train.studies.neural_steppers import STUDIES, load_model
+    from adjointsim.train.studies.neural_steppers import STUDIES
     from adjointsim.train.threads import use_threads
-    from adjointsim.train.trainer import DTYPES, TrainConfig
+    from adjointsim.train.trainer import DTYPES, TrainConfig, load_model
 
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run} does not exist or is not a directory; give the "
                                 "--out directory of an `adjointsim train` run")
-    if not holds_run(args.run, TrainConfig().as_dict()):
+    # a run of a version before the scene key is one too
+    if not holds_run(args.run, TrainConfig().as_dict(), ("scene",)):
         raise UserError(f"{args.run} holds no run of `adjointsim train` (no config.json of its "
                         "keys); eval evaluates neural time-steppers trained by that command")
     if not (args.run / "checkpoint.pt").exists():

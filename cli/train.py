@@ -12,6 +12,8 @@ from .options import (
     config_flags,
     overrides,
     run_options,
+    scene_of,
+    scene_option,
     seeds_option,
     train_seeds,
     write_result,
@@ -30,15 +32,17 @@ def arguments(p: argparse.ArgumentParser) -> None:
     from adjointsim.train.trainer import TrainConfig
 
     run_options(p, "runs/ks")
-    config_flags(p, TrainConfig, TrainConfig.ACCEPTED, skip=("out",), helps=_HELPS)
+    config_flags(p, TrainConfig, TrainConfig.ACCEPTED, skip=("out", "scene"), helps=_HELPS)
+    scene_option(p)
     seeds_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.run import require_checkpoint
     from adjointsim.train.trainer import TrainConfig, build_model, describe, train
 
     values = overrides(args, TrainConfig)
+    values["scene"] = scene_of(args)  # must agree with the dataset's scene
     if args.out is not None:
         values["out"] = str(args.out)
     if values.get("curriculum"):
@@ -68,21 +72,24 @@ def run(args: argparse.Namespace) -> int:
     if args.resume:
         require_checkpoint(out)
     print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
-    with run_errors(out):
-        train(cfg, resume=args.resume, progress=args.progress, overwrite=args.overwrite)
+    train(cfg, resume=args.resume, progress=args.progress, overwrite=args.overwrite)
     write_result(args, _result(cfg))
     print(f"run in {out}")
     return 0
 
 
 def _result(cfg) -> dict:
-    """A run's config with its iterations, skipped updates and final loss."""
-    from adjointsim.run import read_history
+    """A finished run's result.json; for a run stopped by --max-iterations, its recorded
+    config with the iterations, skipped updates and final loss so far."""
+    import json
 
-    # history.csv is written when the run finishes (not after a --max-iterations stop)
-    done = Path(cfg.out) / "history.csv"
-    history = read_history(done) if done.exists() else []
-    return {**cfg.as_dict(), "iterations": len(history),
+    from adjointsim.run import read_history, read_result
+
+    out = Path(cfg.out)
+    if (out / "result.json").exists():
+        return read_result(out / "result.json")
+    history = read_history(out / "history.csv") if (out / "history.csv").exists() else []
+    return {**json.loads((out / "config.json").read_text()), "iterations": len(history),
             "skipped": sum(h["skipped"] for h in history),
             "final_loss": history[-1]["loss"] if history else None}
 

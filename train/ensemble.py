@@ -37,20 +37,18 @@ import numpy as np
 import torch
 from torch import nn
 from torch.func import functional_call, stack_module_state, vmap
-from tqdm.auto import tqdm
 
+from adjointsim import engine
 from adjointsim.errors import UserError
-from adjointsim.files import uninterrupted, write_json
 from adjointsim.nets.mlp import MLP, Sin
-from adjointsim.run import read_result, write_history
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import control as ctl
-from .checkpoint import restore, save_checkpoint
 from .evaluate import BLOW_UPS
 from .model import NeuralStepper
+from .tasks import Task
 from .threads import use_threads
-from .trainer import Run, TrainConfig, TrainData, _claim, loop
+from .trainer import StepperRun, TrainConfig, prepare
 from .unroll import GradientFlow, Update, clip_update, unrolled_loss
 
 #: config keys members of a controller ensemble may differ in
@@ -253,7 +251,7 @@ class _MemberLoss:
     """A control task whose loss is one per member (a (K,) tensor): what
     :func:`adjointsim.train.control.closed_loop` sums over steps."""
 
-    def __init__(self, task: ctl.Task, members: int, rows: int):
+    def __init__(self, task: Task, members: int, rows: int):
         self.task, self.members, self.rows = task, members, rows
         self.solver, self.steps = task.solver, task.steps
 
@@ -272,14 +270,14 @@ class _MemberLoss:
         return torch.stack(terms).sum(dim=0)
 
 
-def _control_losses(task: ctl.Task, stack: Stack, leaves: list[torch.Tensor], x0: torch.Tensor,
+def _control_losses(task: Task, stack: Stack, leaves: list[torch.Tensor], x0: torch.Tensor,
                     rows: int, flow: GradientFlow) -> torch.Tensor:
     k = len(leaves[0])
     return ctl.closed_loop(_MemberLoss(task, k, rows), stack.net(leaves, rows), x0, flow)[0]
 
 
 @torch.no_grad()
-def _evaluate(task: ctl.Task, stack: Stack, x0s: list[torch.Tensor]) -> list[float]:
+def _evaluate(task: Task, stack: Stack, x0s: list[torch.Tensor]) -> list[float]:
     """Each member's mean loss over its initial states (one rollout for all; a member whose
     rollout blows up gets NaN, as in its separate run)."""
     rows = len(x0s[0])
@@ -298,215 +296,169 @@ def _evaluate(task: ctl.Task, stack: Stack, x0s: list[torch.Tensor]) -> list[flo
         return out
 
 
-def _control_update(cfgs: list[ctl.ControlConfig], task: ctl.Task, stack: Stack,
-                    batches: list[torch.Tensor], states: list[dict], idx: list[int]) -> None:
+def _control_update(members: list[ctl.Controller], stack: Stack, batches: list[torch.Tensor],
+                    idx: list[int]) -> None:
     """One minibatch update of the members ``idx`` (each its batch), recorded in their
-    epoch's progress as :func:`adjointsim.train.control._update` records a separate run's."""
-    first = states[idx[0]]["step"] == 0
+    epoch's progress as :func:`adjointsim.train.control.minibatch_update` records a separate
+    run's."""
+    task, first = members[0].task, members[idx[0]].state["step"] == 0
     leaves = stack.leaves(idx)
-    flow = GradientFlow(cfgs[0].mode, diagnose=first)
+    flow = GradientFlow(members[0].config.mode, diagnose=first)
     try:
         losses = _control_losses(task, stack, leaves, torch.cat([batches[k] for k in idx]),
                                  len(batches[0]), flow)
     except (NonFiniteStateError, NonFiniteInputError):
         if len(idx) > 1:  # whose rows blew up is unknown: each member alone
             for k in idx:
-                _control_update(cfgs, task, stack, batches, states, [k])
+                _control_update(members, stack, batches, [k])
         else:
-            states[idx[0]]["skipped"] += 1
+            members[idx[0]].state["skipped"] += 1
         return
     update = flow.backward(losses.sum(), leaves)
     keep, grads, records = [], [], []
     for j, k in enumerate(idx):
-        upd = Update(clip_update([g[j] for g in update.grads], cfgs[k].clip),
+        upd = Update(clip_update([g[j] for g in update.grads], members[k].config.clip),
                      None if update.g_m is None else [g[j] for g in update.g_m],
                      None if update.g_r is None else [g[j] for g in update.g_r])
         loss = float(losses[j].detach())
         if not (math.isfinite(loss) and math.isfinite(upd.norm())):
-            states[k]["skipped"] += 1
+            members[k].state["skipped"] += 1
             continue
         keep.append(j)
         grads.append(upd.grads)
         records.append((k, loss, upd))
     stack.adam([torch.stack(gs) for gs in zip(*grads)], [idx[j] for j in keep])
     for k, loss, upd in records:
-        states[k]["losses"].append(loss)
-        states[k]["norms"].append(upd.norm())
-        if first:
-            states[k]["cos"] = upd.cosine()
+        ctl.record(members[k].state, loss, upd, first)
 
 
-def _train_controllers(cfgs: list[ctl.ControlConfig], ckpts: list[dict | None],
-                       progress: bool) -> list[dict]:
-    cfg0 = cfgs[0]
-    task = ctl.get_task(cfg0.task, cfg0.level)
-    data = [ctl.initial_states(c, task) for c in cfgs]
-    nets = [ctl.build_net(c, task) for c in cfgs]
-    opts = [torch.optim.Adam(n.parameters(), lr=c.lr) for n, c in zip(nets, cfgs)]
-    states = [{"epoch": 0, "finished": False, **ctl._fresh_epoch()} for _ in cfgs]
-    histories: list[list[dict]] = [[] for _ in cfgs]
-    outs = [Path(c.out) for c in cfgs]
-    for k, ckpt in enumerate(ckpts):
-        if ckpt is not None:
-            restore(nets[k], ckpt["net"], outs[k] / "checkpoint.pt")
-            restore(opts[k], ckpt["optimizer"], outs[k] / "checkpoint.pt")
-            states[k], histories[k] = states[k] | ckpt["state"], ckpt["history"]
-            states[k]["finished"] = False
-    group = opts[0].param_groups[0]
-    stack = Stack(nets, [c.lr for c in cfgs], group["betas"], group["eps"])
-    for k in range(len(cfgs)):
-        stack.load(k, nets[k], opts[k])
-        outs[k].mkdir(parents=True, exist_ok=True)
-        write_json(outs[k] / "config.json", cfgs[k].as_dict())
+class ControllerEnsemble:
+    """Controllers at one point of their runs as one vectorised updater (an
+    :class:`adjointsim.engine.Updater`): one closed loop, one backward pass and one stacked Adam
+    step per minibatch for all members, each member's batch, progress, history row and epoch
+    boundary its own run's (:class:`adjointsim.train.control.Controller`)."""
 
-    def save() -> None:
-        for k, cfg in enumerate(cfgs):
-            stack.store(k, nets[k], opts[k])
-            save_checkpoint({"config": cfg.as_dict(), "net": nets[k].state_dict(),
-                             "optimizer": opts[k].state_dict(), "state": dict(states[k]),
-                             "history": histories[k]}, outs[k] / "checkpoint.pt")
+    def __init__(self, members: list[ctl.Controller]):
+        self.members = members
+        group = members[0].optimizer.param_groups[0]
+        self.stack = Stack([m.net for m in members], [m.config.lr for m in members],
+                           group["betas"], group["eps"])
+        for k, m in enumerate(members):
+            self.stack.load(k, m.net, m.optimizer)
 
-    members = list(range(len(cfgs)))
-    per_epoch = cfg0.train // cfg0.batch
-    state = states[0]  # every member's progress is the same
-    bar = tqdm(total=cfg0.epochs, initial=state["epoch"], unit="epoch", disable=not progress,
-               desc=f"{cfg0.task} {cfg0.mode} ×{len(cfgs)}")
-    try:
-        while state["epoch"] < cfg0.epochs:
-            orders = [torch.randperm(c.train, generator=torch.Generator().manual_seed(
-                int(np.random.SeedSequence([c.seed, state["epoch"]]).generate_state(1)[0])))
-                for c in cfgs]
-            while state["step"] < per_epoch:
-                with uninterrupted():
-                    start, i = time.perf_counter(), state["step"]
-                    rows = slice(i * cfg0.batch, (i + 1) * cfg0.batch)
-                    batches = [d[0][o[rows]] for d, o in zip(data, orders)]
-                    _control_update(cfgs, task, stack, batches, states, members)
-                    # each member's share of the ensemble's time
-                    share = (time.perf_counter() - start) / len(cfgs)
-                    for s in states:
-                        s["step"] += 1
-                        s["seconds"] += share
-            with uninterrupted():
-                start = time.perf_counter()
-                train = _evaluate(task, stack, [d[0] for d in data])
-                test = _evaluate(task, stack, [d[1] for d in data])
-                for s in states:
-                    s["seconds"] += (time.perf_counter() - start) / len(cfgs)
-                for k, cfg in enumerate(cfgs):
-                    ctl._end_epoch(cfg, task, nets[k], data[k][0], data[k][1], states[k],
-                                   histories[k], losses=(train[k], test[k]))
-                    write_history(outs[k] / "history.csv", histories[k], ctl.HISTORY_KEYS)
-            save()
-            bar.update()
-            bar.set_postfix(test=f"{np.nanmean([h[-1]['test_loss'] for h in histories]):.3e}")
-    except KeyboardInterrupt:
-        save()
-        raise
-    finally:
-        bar.close()
-    return [ctl._finish(cfgs[k], task, nets[k], data[k][1], histories[k]) for k in members]
+    def done(self) -> bool:
+        return self.members[0].done()
+
+    def update(self) -> bool:
+        """One minibatch of every member; at the end of the epoch, their evaluation (one
+        rollout for all) and history rows: a boundary. Each member is charged its share of
+        the time."""
+        members, start = self.members, time.perf_counter()
+        _control_update(members, self.stack, [m.batch() for m in members],
+                        list(range(len(members))))
+        share = (time.perf_counter() - start) / len(members)
+        if not all([m.advance(share) for m in members]):
+            return False
+        start = time.perf_counter()
+        task = members[0].task
+        train = _evaluate(task, self.stack, [m.x_train for m in members])
+        test = _evaluate(task, self.stack, [m.x_test for m in members])
+        share = (time.perf_counter() - start) / len(members)
+        for m, losses in zip(members, zip(train, test)):
+            m.end_epoch(losses, share)
+        return True
+
+    def sync(self) -> None:
+        """Each member's weights and Adam state back into its network and optimiser, as its
+        separate run holds them (for its checkpoint, result and plots)."""
+        for k, m in enumerate(self.members):
+            self.stack.store(k, m.net, m.optimizer)
 
 
 # ----------------------------------------------------------------------------- neural steppers
-def _stepper_update(runs: list[Run], plans: list[list[dict]], data: TrainData, stack: Stack,
-                    stage: dict, wins: np.ndarray, idx: list[int]) -> None:
-    """One update of the members ``idx``, as :func:`adjointsim.train.trainer.train` makes one
-    for a separate run: the losses, gradients and their norms, the spike cutoff, Adam, the
-    history rows and the rollback guard, each member's own."""
-    cfg = runs[0].cfg
-    batches = [data.batch(runs[k].cfg, plans[k][runs[k].state["stage"]], runs[k].state, wins)
-               for k in idx]
-    for k, batch in zip(idx, batches):
-        stack.lrs[k] = batch[3]
-    leaves = stack.leaves(idx)
-    model = NeuralStepper(stack.net(leaves, len(batches[0][0])), cfg.setup,
-                          runs[0].model.solver if cfg.setup == "correction" else None,
-                          cfg.correction)
-    flow = GradientFlow(stage["flow"])
-    try:
-        frames, params, conditions = (torch.cat(t) for t in list(zip(*batches))[:3])
-        losses = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup,
-                               cfg.truncate, members=len(idx))
-        finite = torch.isfinite(losses.detach())
-        if finite.any():
-            grads = flow.backward(losses[finite].sum(), leaves).grads
-            # as clip_grad_norm_: the norm of the tensors' norms, each member's own
-            norms = torch.stack([g.flatten(1).norm(dim=1) for g in grads], 1).norm(dim=1)
-    except BLOW_UPS:  # the coarse solver refused a state some member's model made
-        if len(idx) > 1:  # whose is unknown: each member alone
-            for k in idx:
-                _stepper_update(runs, plans, data, stack, stage, wins, [k])
-            return
-        losses, finite = torch.tensor([float("nan")]), torch.tensor([False])
-    skipped = [not bool(finite[j]) or runs[k].spike(float(norms[j]))
+class StepperEnsemble:
+    """Neural-stepper runs at one point as one vectorised update (the engine's updater of an
+    ensemble): one tape and one solver call per step for every member, while each member's
+    batch, spike cutoff, history row, rollback guard and checkpoint boundary are its own run's
+    (:class:`adjointsim.train.trainer.StepperRun`)."""
+
+    def __init__(self, group: Sequence[StepperRun]):
+        self.group = list(group)
+        adam = self.group[0].optimizer.param_groups[0]
+        self.stack = Stack([p.model.net for p in self.group],
+                           [p.optimizer.param_groups[0]["lr"] for p in self.group],
+                           adam["betas"], adam["eps"])
+        for k, p in enumerate(self.group):
+            self.stack.load(k, p.model.net, p.optimizer)
+
+    def done(self) -> bool:
+        return self.group[0].done()
+
+    def update(self) -> bool:
+        stage, wins = [p.begin() for p in self.group][0]
+        self._update(stage, wins, list(range(len(self.group))))
+        return self.group[0].boundary()
+
+    def sync(self) -> None:
+        """Each member's weights, Adam state and rate into its own model and optimiser, as its
+        separate run holds them (for its checkpoint, plots and result)."""
+        for k, p in enumerate(self.group):
+            self.stack.store(k, p.model.net, p.optimizer)
+            for g in p.optimizer.param_groups:
+                g["lr"] = self.stack.lrs[k]
+
+    def _update(self, stage: dict, wins: np.ndarray, idx: list[int]) -> None:
+        """One update of the members ``idx``, as :meth:`StepperRun.update` makes one for a
+        separate run: the losses, gradients and their norms, the spike cutoff, Adam, the
+        history rows and the rollback guard, each member's own."""
+        runs, stack = self.group, self.stack
+        cfg = runs[0].config
+        batches = [runs[k].batch(wins) for k in idx]
+        for k, batch in zip(idx, batches):
+            stack.lrs[k] = batch[3]
+        leaves = stack.leaves(idx)
+        model = NeuralStepper(stack.net(leaves, len(batches[0][0])), cfg.setup,
+                              runs[0].model.solver if cfg.setup == "correction" else None,
+                              cfg.correction)
+        flow = GradientFlow(stage["flow"])
+        try:
+            frames, params, conditions = (torch.cat(t) for t in list(zip(*batches))[:3])
+            losses = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup,
+                                   cfg.truncate, members=len(idx))
+            finite = torch.isfinite(losses.detach())
+            if finite.any():
+                grads = flow.backward(losses[finite].sum(), leaves).grads
+                # as clip_grad_norm_: the norm of the tensors' norms, each member's own
+                norms = torch.stack([g.flatten(1).norm(dim=1) for g in grads], 1).norm(dim=1)
+        except BLOW_UPS:  # the coarse solver refused a state some member's model made
+            if len(idx) > 1:  # whose is unknown: each member alone
+                for k in idx:
+                    self._update(stage, wins, [k])
+                return
+            losses, finite = torch.tensor([float("nan")]), torch.tensor([False])
+        skipped = [not bool(finite[j]) or runs[k].spike(float(norms[j]))
+                   for j, k in enumerate(idx)]
+        step = [j for j, s in enumerate(skipped) if not s]
+        if step:
+            sel = torch.tensor(step)
+            stack.adam([g[sel] for g in grads], [idx[j] for j in step])
+        due = [runs[k].record(stage, batches[j][3], float(losses[j].detach()), skipped[j])
                for j, k in enumerate(idx)]
-    step = [j for j, s in enumerate(skipped) if not s]
-    if step:
-        sel = torch.tensor(step)
-        stack.adam([g[sel] for g in grads], [idx[j] for j in step])
-    due = [runs[k].record(stage, batches[j][3], float(losses[j].detach()), skipped[j])
-           for j, k in enumerate(idx)]
-    if any(due):
-        for k in idx:
-            run = runs[k]
-            stack.store(k, run.model.net, run.optimizer)
-            run.guard()
-            stack.load(k, run.model.net, run.optimizer)
-
-
-def _train_steppers(runs: list[Run], plans: list[list[dict]], data: TrainData,
-                    progress: bool) -> None:
-    cfg = runs[0].cfg
-    group = runs[0].optimizer.param_groups[0]
-    stack = Stack([r.model.net for r in runs],
-                  [r.optimizer.param_groups[0]["lr"] for r in runs], group["betas"],
-                  group["eps"])
-    for k, run in enumerate(runs):
-        stack.load(k, run.model.net, run.optimizer)
-    members = list(range(len(runs)))
-
-    def store() -> None:
-        for k, run in enumerate(runs):
-            stack.store(k, run.model.net, run.optimizer)
-            for g in run.optimizer.param_groups:
-                g["lr"] = stack.lrs[k]
-
-    def save() -> None:
-        store()
-        for run in runs:
-            run.save()
-
-    bar = tqdm(total=data.total, initial=runs[0].state["total"], unit="it",
-               disable=not progress, desc=f"train {cfg.mode} ×{len(runs)}")
-    try:
-        loop(cfg, data, runs,
-             lambda stage, wins: _stepper_update(runs, plans, data, stack, stage, wins, members),
-             save, bar)
-    except KeyboardInterrupt:
-        save()
-        raise
-    finally:
-        bar.close()
-    store()
-    for run in runs:
-        run.finish(data.plan)
+        if any(due):
+            for k in idx:
+                run = runs[k]
+                stack.store(k, run.model.net, run.optimizer)
+                run.guard()
+                stack.load(k, run.model.net, run.optimizer)
 
 
 def _stepper_ensemble(cfgs: list[TrainConfig], resume: bool, progress: bool,
                       overwrite: bool) -> list[NeuralStepper]:
-    use_threads(cfgs[0].threads)
-    for cfg in cfgs:
-        _claim(Path(cfg.out), dataclasses.asdict(cfg), resume, overwrite)
-    data = TrainData.load(cfgs[0])
-    plans = [data.plan_of(c) for c in cfgs]
-    runs = [Run.open(c, plan, resume, overwrite) for c, plan in zip(cfgs, plans)]
-    groups: dict[tuple, list[int]] = {}
-    for k, run in enumerate(runs):
-        groups.setdefault((run.state["stage"], run.state["iteration"]), []).append(k)
-    for idx in groups.values():
-        _train_steppers([runs[k] for k in idx], [plans[k] for k in idx], data, progress)
-    return [run.model for run in runs]
+    cfgs, data = prepare(cfgs)
+    runs = [StepperRun(c, data) for c in cfgs]
+    engine.run(runs, resume=resume, overwrite=overwrite, progress=progress,
+               ensemble=StepperEnsemble)
+    return [run.trained() for run in runs]
 
 
 # ----------------------------------------------------------------------------- entry point
@@ -538,17 +490,8 @@ def train_ensemble(cfgs: Sequence, resume: bool = False, progress: bool = True,
 def _control_ensemble(cfgs: list[ctl.ControlConfig], resume: bool, progress: bool,
                       overwrite: bool) -> list[dict]:
     use_threads(cfgs[0].threads)
-    ckpts = [ctl._claim(c, Path(c.out), resume, overwrite) for c in cfgs]
-    results: list[dict | None] = [None] * len(cfgs)
-    groups: dict[tuple, list[int]] = {}
-    for k, (cfg, ckpt) in enumerate(zip(cfgs, ckpts)):
-        if ckpt is not None and ctl._finished(ckpt, cfg, Path(cfg.out)):
-            results[k] = read_result(Path(cfg.out) / "result.json")
-            continue
-        at = (0, 0) if ckpt is None else (ckpt["state"]["epoch"], ckpt["state"].get("step", 0))
-        groups.setdefault(at, []).append(k)
-    for idx in groups.values():
-        done = _train_controllers([cfgs[k] for k in idx], [ckpts[k] for k in idx], progress)
-        for k, result in zip(idx, done):
-            results[k] = result
-    return results
+    members = [ctl.Controller(c) for c in cfgs]
+    # resume: continue the members that hold a run, start the others (a study's new cells)
+    resume = resume and any(engine.RunDir(m).holds() for m in members)
+    return engine.run(members, resume=resume, overwrite=overwrite, progress=progress,
+                      ensemble=ControllerEnsemble)

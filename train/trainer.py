@@ -1,49 +1,41 @@
-"""The training loop: curriculum stages, ONE/NOG/WIG unrolling, atomic checkpoints, resume.
+"""``adjointsim train``: a neural time-stepper (prediction or correction) trained through its
+coarse solver with ONE, NOG or WIG, as a problem on the run engine.
 
-A run lives in one directory: ``config.json``, ``checkpoint.pt`` (written atomically every
-``checkpoint_every`` iterations and at the end), ``history.csv`` and ``training.png``. A run
-started again with ``resume=True`` continues from its checkpoint at the same stage, epoch and
-batch, with the optimiser, the gradient-spike statistics and the data order restored, so it
-ends with the same weights as an uninterrupted run. A run directory that already holds a run is
-refused unless the call says ``resume`` or ``overwrite``.
+The engine (:mod:`adjointsim.engine`) owns the run directory: the claim (``resume``,
+``overwrite``), ``config.json``, ``checkpoint.pt`` (every ``checkpoint_every`` iterations, at
+least every 30 s, on Ctrl-C and at the end), ``history.csv``, the progress bar and
+``result.json``. This module holds what is this problem's own: the config and its accepted
+values (:data:`ACCEPTED`), the model, the plan of curriculum stages, one update (with the
+gradient-spike cutoff and the rollback guard), its state, history rows, result and plot
+(``training.png``). A run continued with ``resume`` picks up at the same stage, epoch and batch,
+with the optimiser, the spike statistics and the data order restored, so it ends with the same
+weights as an uninterrupted run. ``max_iterations`` stops a run early, unfinished and
+resumable.
 
-Every value of a :class:`TrainConfig` is checked for its type and its accepted range
-(:data:`ACCEPTED`). A checkpoint carries the SHA-256 digest of its contents (every tensor's
-bytes, dtype and shape, and every other value), verified when it is loaded; checkpoints from
-before digests load with a warning and get one at their next save.
+The solver's scene comes from the dataset (``adjointsim data --scene``); the ``scene`` key
+may repeat it and is refused where it disagrees.
 """
 
 from __future__ import annotations
 
 import copy
-import json
+import dataclasses
 import math
-from dataclasses import asdict, dataclass, field
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
+from adjointsim import engine
 from adjointsim.errors import RunExists, UserError
-from adjointsim.files import uninterrupted, write_text
 from adjointsim.nets import DilatedResNet, ResNet, UNet, parameter_count
-from adjointsim.run import (
-    SEEDS,
-    Config,
-    Interval,
-    check_memory,
-    differing,
-    discard,
-    holds_run,
-    plot_history,
-    refuse_foreign,
-    write_history,
-)
+from adjointsim.run import SEEDS, Config, Interval, check_memory, plot_history
 
 from . import data as datamod
-from .checkpoint import load_checkpoint, restore, save_checkpoint
+from .checkpoint import STORE, load_checkpoint, restore
 from .evaluate import BLOW_UPS
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
@@ -55,7 +47,7 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 #: the accepted values of every TrainConfig field: choices, an Interval, or (data, out,
-#: curriculum) checked by their own rule in TrainConfig.check
+#: curriculum, scene) checked by their own rule
 ACCEPTED: dict[str, tuple | Interval | str] = {
     "problem": tuple(PROBLEMS),
     "data": "a non-empty path",
@@ -84,12 +76,13 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     # at ≤ 1 every update above the mean would be skipped. Use a large value to disable it.
     "spike_factor": Interval(1, lo_open=True),
     # 0 turns it off; in (0, 1] it would roll back on every window that is not a new best
-    # (refused in TrainConfig.validate).
+    # (refused in TrainConfig.check).
     "rollback": Interval(0),
     "checkpoint_every": Interval(1),
     "seed": SEEDS,
     "threads": Interval(1),
     "max_iterations": Interval(0),
+    "scene": "the dataset's scene keys (train takes the scene from its dataset)",
 }
 
 
@@ -122,13 +115,18 @@ class TrainConfig(Config):
     #: roll back to the best weights and halve the learning rate when the median loss of the
     #: last ROLLBACK_WINDOW updates exceeds this multiple of the best such median (0: off)
     rollback: float = 0.0
+    #: iterations between two checkpoints (and history writes)
     checkpoint_every: int = 200
     seed: int = 0
     #: torch's and the solver's threads (they take turns); small convolutions run fastest on
     #: one, and 2-core machines are shared
     threads: int = 1
-    #: stop after this many iterations in total (for tests and interrupted-run drills)
+    #: stop after this many iterations in total, unfinished (for tests and interrupted-run
+    #: drills): continue with resume
     max_iterations: int = 0
+    #: the solver's scene: the dataset's (recorded here when the run starts); a key given
+    #: must agree with it
+    scene: dict = field(default_factory=dict)
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
@@ -153,12 +151,12 @@ class TrainConfig(Config):
                                 f"[m, lr] pair with m an integer ≥ 1 and lr {ACCEPTED['lr']}")
 
     def stages(self) -> list[tuple[int, float]]:
-        stages = [(int(m), float(lr)) for m, lr in self.curriculum] or [(self.unroll, self.lr)]
-        return stages
+        return [(int(m), float(lr)) for m, lr in self.curriculum] or [(self.unroll, self.lr)]
 
 
 def build_model(cfg: TrainConfig) -> NeuralStepper:
-    problem = get_problem(cfg.problem)
+    """The untrained model ``cfg`` describes (its initialisation is the seed's)."""
+    problem = get_problem(cfg.problem, cfg.scene)
     torch.manual_seed(cfg.seed)
     kwargs = {"width": cfg.width}
     if cfg.net == "resnet":
@@ -169,105 +167,42 @@ def build_model(cfg: TrainConfig) -> NeuralStepper:
     return NeuralStepper(net, cfg.setup, solver, cfg.correction)
 
 
-def _plan(cfg: TrainConfig, n_windows_fn) -> list[dict]:
-    """Per stage: the flow, unroll horizon, batch size, iterations per epoch and in all."""
-    plan = []
+def describe(model: NeuralStepper) -> str:
+    return f"{type(model.net).__name__}: {parameter_count(model.net):,} parameters"
+
+
+def plan(cfg: TrainConfig, n_windows) -> list[dict]:
+    """Per stage: the flow, unroll horizon, batch size, iterations per epoch and in all;
+    ``n_windows(length)`` counts the training windows of ``length`` frames."""
+    stages = []
     for m, lr in cfg.stages():
         flow, horizon, batch, epochs = schedule(cfg.mode, m, cfg.batch, cfg.epochs)
-        n = n_windows_fn(horizon + cfg.warmup + 1)
+        n = n_windows(horizon + cfg.warmup + 1)
         per_epoch = max(1, n // batch)
-        plan.append({"flow": flow, "m": horizon, "lr": lr, "batch": batch,
-                     "iterations": int(math.ceil(epochs * per_epoch)), "per_epoch": per_epoch})
-    return plan
+        stages.append({"flow": flow, "m": horizon, "lr": lr, "batch": batch,
+                       "iterations": int(math.ceil(epochs * per_epoch)), "per_epoch": per_epoch})
+    return stages
 
 
-#: keys a run may be resumed with other values of
-RESUMABLE = ("out", "threads", "max_iterations")
-
-#: what a run directory holds besides config.json: replaced by ``overwrite``
-RUN_FILES = ("history.csv", "training.png", "results.json", "metrics.json", "rollout-*.png")
-_RECOVER = ("copy an intact run directory over it and continue with --resume, or train again "
-            "from scratch with --overwrite")
-
-
-def _claim(out: Path, config: dict, resume: bool, overwrite: bool) -> None:
-    """Refuse a directory holding another run unless told to resume or overwrite it, and one
-    holding somebody else's files always."""
-    if resume and overwrite:
-        raise UserError("--resume continues a run and --overwrite discards it: pass one")
-    if not holds_run(out, config):
-        refuse_foreign(out, config)
-    ckpt_path = out / "checkpoint.pt"
-    if resume or overwrite or not (ckpt_path.exists() or (out / "config.json").exists()):
-        return
-    what = "a run that saved no checkpoint yet"
-    if ckpt_path.exists():
-        try:
-            state = load_checkpoint(ckpt_path, recover=_RECOVER)["state"]
-            what = (f"a finished run ({state['total']} iterations)" if state.get("finished") else
-                    f"an unfinished run (stopped after {state['total']} iterations)")
-        except (UserError, KeyError):
-            what = "a run whose checkpoint cannot be read"
-    raise RunExists(f"{out} already holds {what}; continue it with --resume, train into a new "
-                    "--out, or start it again with --overwrite")
-
-
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
-          overwrite: bool = False) -> NeuralStepper:
-    """Train a model as configured; returns it (also saved in ``cfg.out``).
-
-    A ``cfg.out`` that already holds a run is refused unless ``resume`` (continue it from its
-    checkpoint; a run without one starts over) or ``overwrite`` (discard it) is given.
-    """
-    cfg.validate()
-    use_threads(cfg.threads)
-    _claim(Path(cfg.out), asdict(cfg), resume, overwrite)
-    data = TrainData.load(cfg)
-    run = Run.open(cfg, data.plan, resume, overwrite)
-    bar = tqdm(total=data.total, initial=run.state["total"], desc=f"train {cfg.mode}",
-               disable=not progress, unit="it")
-    try:
-        loop(cfg, data, [run], lambda stage, wins: _iteration(cfg, stage, wins, data, run),
-             run.save, bar)
-    except KeyboardInterrupt:
-        run.save()  # between updates (see uninterrupted): the run resumes bit-identically
-        raise
-    finally:
-        bar.close()
-    run.finish(data.plan)
-    return run.model
-
-
+# ----------------------------------------------------------------------------- the data
 @dataclass
 class TrainData:
-    """A run's training split as tensors, and its plan (:func:`_plan`): what the members of an
-    ensemble share."""
+    """A dataset's training split as tensors: what the members of an ensemble share."""
 
     split: Any
     frames: torch.Tensor
     params: torch.Tensor
     conditions: torch.Tensor
-    plan: list[dict]
 
     @classmethod
-    def load(cls, cfg: TrainConfig) -> TrainData:
-        dataset = datamod.load(cfg.data)
-        if dataset.problem.name != cfg.problem:
-            raise UserError(f"{cfg.data} holds {dataset.problem.name!r} data, not "
-                            f"{cfg.problem!r}")
+    def of(cls, dataset: datamod.Dataset, dtype: str) -> TrainData:
         split = dataset.splits["train"]
-        data = cls(split, torch.from_numpy(split.trajectories).to(DTYPES[cfg.dtype]),
-                   torch.from_numpy(split.params), torch.from_numpy(split.conditions), [])
-        data.plan = data.plan_of(cfg)
-        return data
+        return cls(split, torch.from_numpy(split.trajectories).to(DTYPES[dtype]),
+                   torch.from_numpy(split.params), torch.from_numpy(split.conditions))
 
     def plan_of(self, cfg: TrainConfig) -> list[dict]:
         """``cfg``'s plan on this split (an ensemble's members differ in their rates)."""
-        return _plan(cfg, lambda length: len(datamod.windows(self.split, length, cfg.stride)))
-
-    @property
-    def total(self) -> int:
-        return sum(s["iterations"] for s in self.plan)
+        return plan(cfg, lambda length: len(datamod.windows(self.split, length, cfg.stride)))
 
     def batch(self, cfg: TrainConfig, stage: dict, state: dict, wins: np.ndarray
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
@@ -291,58 +226,129 @@ def window(stage: dict, cfg: TrainConfig) -> int:
     return stage["m"] + cfg.warmup + 1
 
 
-@dataclass
-class Run:
-    """One run's model, optimiser, progress and history, and its directory's files."""
+def prepare(cfgs: list[TrainConfig]) -> tuple[list[TrainConfig], TrainData]:
+    """Runs of ``cfgs`` (one, or an ensemble's members, of one dataset) as they start: checked,
+    each with the dataset's scene recorded, and the dataset's training split."""
+    for cfg in cfgs:
+        cfg.validate()
+    cfg = cfgs[0]
+    use_threads(cfg.threads)
+    dataset = datamod.load(cfg.data)
+    if dataset.problem.name != cfg.problem:
+        raise UserError(f"{cfg.data} holds {dataset.problem.name!r} data, not {cfg.problem!r}")
+    theirs = dataset.problem.scene
+    for key, value in cfg.scene.items():
+        if theirs.get(key, object()) != value:
+            was = f"{key} = {theirs[key]!r}" if key in theirs else f"no {key}"
+            raise UserError(f"config key 'scene': {key} = {value!r} conflicts with the scene of "
+                            f"the dataset {cfg.data} ({was}); train takes the scene from its "
+                            "dataset: leave the key out, or train on data made with it")
+    return ([dataclasses.replace(c, scene=dict(theirs)) for c in cfgs],
+            TrainData.of(dataset, cfg.dtype))
 
-    cfg: TrainConfig
-    model: NeuralStepper
-    optimizer: torch.optim.Adam
-    state: dict
-    history: list[dict]
-    #: the weights and optimiser state at state["best"], for a rollback
-    kept: dict[str, Any]
 
-    @classmethod
-    def open(cls, cfg: TrainConfig, plan: list[dict], resume: bool, overwrite: bool) -> Run:
-        """A fresh run, or with ``resume`` the one its checkpoint holds (checked against
-        ``cfg``); writes ``config.json``."""
-        out = Path(cfg.out)
-        out.mkdir(parents=True, exist_ok=True)
-        if overwrite:  # only now that the new run is known to start
-            discard(out, RUN_FILES)
-        model = build_model(cfg)
-        optimizer = torch.optim.Adam(model.parameters(), lr=plan[0]["lr"])
-        state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
-                 "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
-        kept: dict[str, Any] = {"best": None}
-        history: list[dict] = []
-        ckpt_path = out / "checkpoint.pt"
-        if resume and ckpt_path.exists():
-            ckpt = load_checkpoint(ckpt_path, recover=_RECOVER)
-            # options added since the checkpoint was written take their defaults
-            theirs = asdict(TrainConfig()) | ckpt["config"]
-            # where the run lives, how many threads and when to stop do not change its result
-            ours = asdict(cfg) | {k: theirs[k] for k in RESUMABLE}
-            if str(Path(theirs["data"]).resolve()) == str(Path(cfg.data).resolve()):
-                ours["data"] = theirs["data"]
-            if theirs != ours:
-                differ = differing(ours, theirs)
-                raise UserError(f"{ckpt_path} was written with another configuration (differs "
-                                f"in {', '.join(differ)}); train into a new --out or use "
-                                "--overwrite")
-            restore(model, ckpt["model"], ckpt_path)
-            restore(optimizer, ckpt["optimizer"], ckpt_path)
-            state, history = state | ckpt["state"], ckpt["history"]
-            kept["best"] = ckpt.get("best")
-        write_text(out / "config.json", json.dumps(asdict(cfg), indent=2))
-        return cls(cfg, model, optimizer, state, history, kept)
+# ----------------------------------------------------------------------------- the problem
+#: updates per window of the rollback guard
+ROLLBACK_WINDOW = 100
+HISTORY_FIELDS = ("iteration", "stage", "m", "lr", "loss", "skipped")
 
-    def save(self) -> None:
-        save_checkpoint({"config": asdict(self.cfg), "model": self.model.state_dict(),
-                         "optimizer": self.optimizer.state_dict(), "state": self.state,
-                         "history": self.history, "best": self.kept["best"]},
-                        Path(self.cfg.out) / "checkpoint.pt")
+
+class StepperRun(engine.Problem):
+    """One neural-stepper run on the engine. Its pieces (:meth:`begin`, :meth:`batch`,
+    :meth:`spike`, :meth:`record`, :meth:`guard`, :meth:`boundary`) also make an ensemble's
+    update (:class:`adjointsim.train.ensemble.StepperEnsemble`)."""
+
+    RESUMABLE = ("out", "threads", "max_iterations")
+    HISTORIES = {"history.csv": HISTORY_FIELDS}
+    RUN_FILES = ("training.png", "results.json", "metrics.json", "rollout-*.png")
+    RESULT_KEYS = ("iterations", "final_loss", "skipped", "rollbacks", "parameters")
+    UNIT = "it"
+    STORE = STORE
+
+    def __init__(self, config: TrainConfig, data: TrainData):
+        super().__init__(config, config.out)
+        self.config: TrainConfig = config
+        self.data = data
+        self.model: NeuralStepper | None = None
+
+    def describe(self) -> str:
+        return f"train {self.config.mode}"
+
+    def build(self) -> None:
+        cfg = self.config
+        self.plan = self.data.plan_of(cfg)
+        self.model = build_model(cfg)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.plan[0]["lr"])
+        self.state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
+                      "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
+        #: the weights and optimiser state at state["best"], for a rollback
+        self.kept: dict | None = None
+        self.history: list[dict] = []
+        self.wins: tuple[int, np.ndarray] | None = None
+
+    # how far
+    def total(self) -> int:
+        return sum(s["iterations"] for s in self.plan)
+
+    def position(self) -> int:
+        return self.state["total"]
+
+    def paused(self) -> bool:
+        cap = self.config.max_iterations
+        return bool(cap) and cap <= self.position() < self.total()
+
+    def boundary(self) -> bool:
+        """Whether the update just made ends a checkpoint interval."""
+        return self.state["total"] % self.config.checkpoint_every == 0
+
+    def postfix(self) -> dict[str, Any]:
+        return {"loss": f"{self.history[-1]['loss']:.3e}", "m": self.history[-1]["m"]}
+
+    # one update
+    def update(self) -> bool:
+        stage, wins = self.begin()
+        model, optimizer = self.model, self.optimizer
+        frames, params, conditions, lr = self.batch(wins)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        optimizer.zero_grad(set_to_none=True)
+        try:
+            flow = GradientFlow(stage["flow"])
+            loss = unrolled_loss(model, frames, params, conditions, flow, self.config.warmup,
+                                 self.config.truncate)
+            skipped = not torch.isfinite(loss)
+            if not skipped:
+                flow.backward(loss, list(model.parameters()))
+        except BLOW_UPS:  # the coarse solver refused a state the model made
+            loss, skipped = torch.tensor(float("nan")), True
+        if not skipped:
+            norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf")))
+            skipped = self.spike(norm)
+            if not skipped:
+                optimizer.step()
+        if self.record(stage, lr, loss.item(), skipped):
+            self.guard()
+        return self.boundary()
+
+    def begin(self) -> tuple[dict, np.ndarray]:
+        """The stage of the next update (the next stage once this one's iterations are done)
+        and its training windows."""
+        state = self.state
+        if state["iteration"] >= self.plan[state["stage"]]["iterations"]:
+            state["stage"] += 1
+            state["iteration"] = 0
+            state["grad_ema"] = 0.0
+            state["best"], self.kept = math.inf, None  # a longer unroll has a larger loss
+        stage = self.plan[state["stage"]]
+        if self.wins is None or self.wins[0] != state["stage"]:
+            self.wins = (state["stage"], datamod.windows(self.data.split,
+                                                         window(stage, self.config),
+                                                         self.config.stride))
+        return stage, self.wins[1]
+
+    def batch(self, wins: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+        """This run's next reference windows, parameters, conditions and learning rate."""
+        return self.data.batch(self.config, self.plan[self.state["stage"]], self.state, wins)
 
     def spike(self, norm: float) -> bool:
         """Whether an update of gradient norm ``norm`` is skipped (not finite, or a spike);
@@ -350,7 +356,7 @@ class Run:
         # The running mean restarts each stage (a longer unroll has larger gradients)
         # and also follows skipped norms, capped, so a lasting rise is let through.
         state = self.state
-        ema, cutoff = state["grad_ema"], self.cfg.spike_factor * state["grad_ema"]
+        ema, cutoff = state["grad_ema"], self.config.spike_factor * state["grad_ema"]
         spike = state["iteration"] > 20 and norm > cutoff
         if math.isfinite(norm):
             state["grad_ema"] = norm if ema == 0 else 0.95 * ema + 0.05 * min(norm, cutoff)
@@ -364,110 +370,101 @@ class Run:
                              "m": stage["m"], "lr": lr, "loss": loss, "skipped": skipped})
         state["iteration"] += 1
         state["total"] += 1
-        return bool(self.cfg.rollback) and state["iteration"] % ROLLBACK_WINDOW == 0
+        return bool(self.config.rollback) and state["iteration"] % ROLLBACK_WINDOW == 0
 
     def guard(self) -> None:
-        self.kept["best"] = _guard(self.cfg.rollback, self.history, self.state, self.model,
-                                   self.optimizer, self.kept["best"])
+        """The divergence guard: after each window, remember the weights of the best window so
+        far, or, when the window's median loss exceeds ``rollback`` × the best, restore them
+        and halve the learning rate. Unrolled NOG training can run away late in training
+        (docs/results-notes.md, "Unrolling across seeds"): the loss rises 100x over ~100
+        updates, too gradually for the spike cutoff, and does not come back."""
+        state, model, optimizer = self.state, self.model, self.optimizer
+        losses = [h["loss"] for h in self.history[-ROLLBACK_WINDOW:] if not h["skipped"]]
+        median = float(np.median(losses)) if losses else math.inf
+        if median < state["best"]:
+            state["best"] = median
+            self.kept = copy.deepcopy({"model": model.state_dict(),
+                                       "optimizer": optimizer.state_dict()})
+        elif self.kept is not None and not median <= self.config.rollback * state["best"]:
+            model.load_state_dict(self.kept["model"])
+            # Adam takes the state's tensors as its own and updates them in place: a copy
+            # keeps the snapshot intact for a later rollback to it
+            optimizer.load_state_dict(copy.deepcopy(self.kept["optimizer"]))
+            state["lr_scale"] *= 0.5
+            state["rollbacks"] += 1
 
-    def next_stage(self) -> None:
-        state = self.state
-        state["stage"] += 1
-        state["iteration"] = 0
-        state["grad_ema"] = 0.0
-        state["best"], self.kept["best"] = math.inf, None  # a longer unroll has a larger loss
+    # what it keeps
+    def state_dict(self) -> dict:
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "kept": self.kept, "progress": dict(self.state)}
 
-    def finish(self, plan: list[dict]) -> None:
-        """Mark the run finished and write its history, unless ``max_iterations`` stopped it."""
-        if self.cfg.max_iterations and self.state["stage"] < len(plan):
-            return
-        self.state["finished"] = True
-        self.save()
-        _write_history(self.history, Path(self.cfg.out))
+    def load_state_dict(self, state: dict) -> None:
+        path = self.out / engine.CHECKPOINT
+        if "progress" not in state:
+            raise RunExists(f"{path} was written by an earlier version, which kept the weights "
+                            "elsewhere: it can be evaluated but not continued; start the run "
+                            "again with --overwrite, or into another --out")
+        restore(self.model, state["model"], path)
+        restore(self.optimizer, state["optimizer"], path)
+        self.kept = state.get("kept")
+        self.state |= state["progress"]
 
+    def histories(self) -> dict[str, list[dict]]:
+        return {"history.csv": self.history}
 
-def loop(cfg: TrainConfig, data: TrainData, runs: list[Run], iterate, save, bar) -> None:
-    """The stages' iterations of ``runs`` (one run, or an ensemble's members, all at the same
-    point), each update ``iterate(stage, windows)`` held together against Ctrl-C."""
-    state = runs[0].state
-    while state["stage"] < len(data.plan):
-        stage = data.plan[state["stage"]]
-        wins = datamod.windows(data.split, window(stage, cfg), cfg.stride)
-        while state["iteration"] < stage["iterations"]:
-            if cfg.max_iterations and state["total"] >= cfg.max_iterations:
-                save()
-                return
-            with uninterrupted():
-                iterate(stage, wins)
-            bar.update()
-            loss = np.mean([r.history[-1]["loss"] for r in runs])
-            bar.set_postfix(loss=f"{loss:.3e}", m=stage["m"])
-            if state["total"] % cfg.checkpoint_every == 0:
-                save()
-        for run in runs:
-            run.next_stage()
+    def load_histories(self, histories: dict[str, list[dict]]) -> None:
+        self.history = list(histories["history.csv"])
 
+    # the end
+    def finish(self) -> dict:
+        history = self.history
+        return {"iterations": len(history), "skipped": sum(h["skipped"] for h in history),
+                "rollbacks": self.state["rollbacks"],
+                "final_loss": engine.finite_or_none(history[-1]["loss"]) if history else None,
+                "parameters": parameter_count(self.model.net)}
 
-def _iteration(cfg: TrainConfig, stage: dict, wins: np.ndarray, data: TrainData,
-               run: Run) -> None:
-    """One update, its history row and counters, and the rollback guard."""
-    model, optimizer = run.model, run.optimizer
-    frames, params, conditions, lr = data.batch(cfg, stage, run.state, wins)
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    optimizer.zero_grad(set_to_none=True)
-    try:
-        flow = GradientFlow(stage["flow"])
-        loss = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup, cfg.truncate)
-        skipped = not torch.isfinite(loss)
-        if not skipped:
-            flow.backward(loss, list(model.parameters()))
-    except BLOW_UPS:  # the coarse solver refused a state the model made
-        loss, skipped = torch.tensor(float("nan")), True
-    if not skipped:
-        norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf")))
-        skipped = run.spike(norm)
-        if not skipped:
-            optimizer.step()
-    if run.record(stage, lr, loss.item(), skipped):
-        run.guard()
+    def plot(self) -> None:
+        history = self.history
+        plot_history(self.out / "training.png", {"loss": history}, "iteration", "loss",
+                     "iteration", "unrolled MSE",
+                     smooth=max(1, len(history) // 50) if len(history) >= 20 else 0)
+
+    def trained(self) -> NeuralStepper:
+        """The model: as trained here, or, for a finished run the engine returned as it was,
+        as its checkpoint holds it."""
+        return self.model if self.model is not None else load_model(self.out, warn=False)[0]
 
 
-#: updates per window of the rollback guard
-ROLLBACK_WINDOW = 100
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
+          overwrite: bool = False) -> NeuralStepper:
+    """Train a model as configured; returns it (also saved in ``cfg.out``).
+
+    A ``cfg.out`` that already holds a run is refused unless ``resume`` (continue it from its
+    checkpoint; a finished run is returned as it is) or ``overwrite`` (discard it) is given.
+    """
+    (cfg,), data = prepare([cfg])
+    run = StepperRun(cfg, data)
+    engine.run(run, resume=resume, overwrite=overwrite, progress=progress)
+    return run.trained()
 
 
-def _guard(factor: float, history: list[dict], state: dict, model, optimizer, best):
-    """The divergence guard: after each window, remember the weights of the best window so far,
-    or, when the window's median loss exceeds ``factor`` × the best, restore them and halve the
-    learning rate. Unrolled NOG training can run away late in training (docs/results-notes.md,
-    "Unrolling across seeds"): the loss rises 100x over ~100 updates, too gradually for the
-    spike cutoff, and does not come back. Returns the (possibly new) best snapshot."""
-    losses = [h["loss"] for h in history[-ROLLBACK_WINDOW:] if not h["skipped"]]
-    median = float(np.median(losses)) if losses else math.inf
-    if median < state["best"]:
-        state["best"] = median
-        return copy.deepcopy({"model": model.state_dict(), "optimizer": optimizer.state_dict()})
-    if best is not None and not median <= factor * state["best"]:
-        model.load_state_dict(best["model"])
-        # Adam takes the state's tensors as its own and updates them in place: a copy keeps
-        # the snapshot intact for a later rollback to it
-        optimizer.load_state_dict(copy.deepcopy(best["optimizer"]))
-        state["lr_scale"] *= 0.5
-        state["rollbacks"] += 1
-    return best
-
-
-HISTORY_FIELDS = ("iteration", "stage", "m", "lr", "loss", "skipped")
-
-
-def _write_history(history: list[dict], out: Path) -> None:
-    write_history(out / "history.csv", history, HISTORY_FIELDS)
-    plot_history(out / "training.png", {"loss": history}, "iteration", "loss", "iteration",
-                 "unrolled MSE", smooth=max(1, len(history) // 50) if len(history) >= 20 else 0)
-
-
-def describe(model: NeuralStepper) -> str:
-    return f"{type(model.net).__name__}: {parameter_count(model.net):,} parameters"
-
-
+def load_model(run: str | Path, warn: bool = True) -> tuple[NeuralStepper, TrainConfig]:
+    """The model of the run directory ``run``, and its config; an unfinished run's, with a
+    warning unless ``warn`` is False."""
+    run = Path(run)
+    ckpt = load_checkpoint(run / engine.CHECKPOINT, ("config", "state"))
+    cfg = TrainConfig(**ckpt["config"])
+    state = ckpt["state"]
+    # an earlier version kept the weights beside the state, and marked a finished run there
+    progress, weights = (state["progress"], state["model"]) if "progress" in state else (
+        state, ckpt["model"])
+    if warn and not ((run / engine.RESULT).exists() or progress.get("finished")):
+        warnings.warn(
+            f"{run} holds an unfinished run (stopped after {progress['total']} iterations); "
+            "finish it by running its `adjointsim train` command again with --resume, or "
+            "expect a partly trained model",
+            stacklevel=2,
+        )
+    model = build_model(cfg)
+    restore(model, weights, run / engine.CHECKPOINT)
+    return model, cfg

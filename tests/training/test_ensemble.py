@@ -113,8 +113,8 @@ def _stepper(tiny, tmp_path, where, seed, mode, setup="correction", **kw):
 
 
 def _stepper_checkpoints(tmp_path, where, seed):
-    ckpt = load_checkpoint(tmp_path / where / f"s{seed}" / "checkpoint.pt")
-    return ckpt["model"], ckpt
+    ckpt = load_checkpoint(tmp_path / where / f"s{seed}" / "checkpoint.pt", ("state", "history"))
+    return ckpt["state"]["model"], ckpt
 
 
 @pytest.mark.parametrize(("mode", "setup", "kw"), [
@@ -138,16 +138,17 @@ def test_stepper_members_equal_their_separate_runs(tiny, tmp_path, monkeypatch, 
         b, sep = _stepper_checkpoints(tmp_path, "sep", s)
         assert _max_rel(a, b) <= 1e-10
         assert _max_rel(dict(model.state_dict()), b) <= 1e-10
-        assert ens["state"]["total"] == sep["state"]["total"] >= 20
-        for key in ("skipped", "rollbacks", "finished", "stage"):
-            assert ens["state"].get(key) == sep["state"].get(key)
+        ens_at, sep_at = ens["state"]["progress"], sep["state"]["progress"]
+        assert ens_at["total"] == sep_at["total"] >= 20
+        for key in ("skipped", "rollbacks", "stage", "lr_scale"):
+            assert ens_at[key] == sep_at[key]
         assert ([h["loss"] for h in ens["history"]]
                 == pytest.approx([h["loss"] for h in sep["history"]], rel=1e-10, nan_ok=True))
         assert [h["skipped"] for h in ens["history"]] == [h["skipped"] for h in sep["history"]]
-        for name in ("history.csv", "training.png", "config.json"):
+        for name in ("history.csv", "training.png", "config.json", "result.json"):
             assert (tmp_path / "ens" / f"s{s}" / name).exists()
         weights.append(a)
-        states.append(ens["state"])
+        states.append(ens_at)
     # the members really differ, and the guards acted (rolled back twice to one snapshot, or
     # skipped spikes of some members only), so the checks above can fail
     assert all(_max_rel(weights[0], w) > 1e-3 for w in weights[1:])
@@ -171,8 +172,8 @@ def test_train_seeds_writes_one_run_per_seed_equal_to_the_ensemble(tiny, tmp_pat
         (0, str(out / "seed0")), (2, str(out / "seed2"))]
     train(TrainConfig(data=str(tiny), out=str(tmp_path / "sep"), seed=2, width=4, blocks=1,
                       unroll=2, batch=2, epochs=1.0, stride=8, dtype="float64"), progress=False)
-    a, b = (load_checkpoint(d / "checkpoint.pt")["model"] for d in (out / "seed2",
-                                                                    tmp_path / "sep"))
+    a, b = (load_checkpoint(d / "checkpoint.pt", ("state",))["state"]["model"]
+            for d in (out / "seed2", tmp_path / "sep"))
     assert _max_rel(a, b) <= 1e-10
     for command in (["train", *flags], ["control", "cartpole"]):
         assert main([*command, "--out", str(tmp_path / "x"), "--seeds", "0", "1",

@@ -14,16 +14,20 @@ import torch
 from adjointsim.errors import RunExists, UserError
 from adjointsim.train import bridge
 from adjointsim.train import data as datamod
+from adjointsim.train.checkpoint import load_checkpoint, save_checkpoint
 from adjointsim.train.model import NeuralStepper
 from adjointsim.train.problems import get_problem
-from adjointsim.train.trainer import (
-    TrainConfig,
-    build_model,
-    load_checkpoint,
-    save_checkpoint,
-    train,
-)
+from adjointsim.train.trainer import TrainConfig, build_model, train
 from adjointsim.train.unroll import unrolled_loss
+
+
+def _checkpoint(path):
+    """A run's checkpoint (the engine's layout: config, state, history)."""
+    return load_checkpoint(path, ("config", "state", "history"))
+
+
+def _weights(path):
+    return _checkpoint(path)["state"]["model"]
 
 
 def _batch(path, m, dtype=torch.float64):
@@ -146,17 +150,17 @@ def test_truncated_bptt_interpolates_between_nog_and_wig(tiny):
 
 
 def test_curriculum_stages_and_one_scaling(tiny, tmp_path):
-    from adjointsim.train.trainer import _plan
+    from adjointsim.train.trainer import plan
 
     model = train(_config(tiny, tmp_path / "c", curriculum=[[1, 1e-3], [2, 1e-4]], epochs=1),
                   progress=False)
     assert model is not None
-    history = load_checkpoint(tmp_path / "c" / "checkpoint.pt")["history"]
+    history = _checkpoint(tmp_path / "c" / "checkpoint.pt")["history"]
     stages = sorted({(h["stage"], h["m"], h["lr"]) for h in history})
     assert stages == [(0, 1, 1e-3), (1, 2, 1e-4)]
     # ONE trains on single steps with the batch and the epochs scaled by the target m.
-    one = _plan(TrainConfig(mode="ONE", unroll=4, batch=2, epochs=1), lambda length: 100)
-    wig = _plan(TrainConfig(mode="WIG", unroll=4, batch=2, epochs=1), lambda length: 100)
+    one = plan(TrainConfig(mode="ONE", unroll=4, batch=2, epochs=1), lambda length: 100)
+    wig = plan(TrainConfig(mode="WIG", unroll=4, batch=2, epochs=1), lambda length: 100)
     assert (one[0]["m"], one[0]["batch"]) == (1, 8) and wig[0]["batch"] == 2
     assert one[0]["iterations"] == 4 * one[0]["per_epoch"]
 
@@ -182,7 +186,7 @@ def test_spiking_and_non_finite_updates_are_skipped(tiny, tmp_path, monkeypatch)
     real, calls = unrolled_loss, {"n": 0}
     cfg = _config(tiny, tmp_path / "s", epochs=30, checkpoint_every=1000, max_iterations=24)
     train(cfg, progress=False)
-    ckpt = load_checkpoint(tmp_path / "s" / "checkpoint.pt")
+    ckpt = _checkpoint(tmp_path / "s" / "checkpoint.pt")
     assert [h["skipped"] for h in ckpt["history"]] == [False] * 21 + [True] * 3
     # A non-finite loss is never stepped on.
 
@@ -193,7 +197,7 @@ def test_spiking_and_non_finite_updates_are_skipped(tiny, tmp_path, monkeypatch)
 
     monkeypatch.setattr(trainer, "unrolled_loss", sometimes_nan)
     train(_config(tiny, tmp_path / "n", max_iterations=3), progress=False)
-    history = load_checkpoint(tmp_path / "n" / "checkpoint.pt")["history"]
+    history = _checkpoint(tmp_path / "n" / "checkpoint.pt")["history"]
     assert [h["skipped"] for h in history] == [False, True, False]
 
 
@@ -208,15 +212,19 @@ def test_resume_after_interruption_gives_the_same_weights(tiny, tmp_path):
     full = train(_config(tiny, tmp_path / "a"), progress=False)
     cut = _config(tiny, tmp_path / "b", max_iterations=7)
     train(cut, progress=False)
-    assert load_checkpoint(tmp_path / "b" / "checkpoint.pt")["state"]["total"] == 7
+    assert _checkpoint(tmp_path / "b" / "checkpoint.pt")["state"]["progress"]["total"] == 7
+    assert not (tmp_path / "b" / "result.json").exists()  # stopped, not finished
     resumed = train(_config(tiny, tmp_path / "b"), resume=True, progress=False)
     for a, b in zip(full.state_dict().values(), resumed.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+    for name in ("history.csv", "result.json"):
+        assert (tmp_path / "a" / name).read_text().replace(str(tmp_path / "a"), "") == \
+            (tmp_path / "b" / name).read_text().replace(str(tmp_path / "b"), "")
     assert (tmp_path / "b" / "training.png").exists()
 
 
 def test_evaluating_an_unfinished_run_warns(tiny, tmp_path):
-    from adjointsim.train.studies.neural_steppers import load_model
+    from adjointsim.train.trainer import load_model
 
     train(_config(tiny, tmp_path / "cut", max_iterations=2), progress=False)
     with pytest.warns(UserWarning, match="unfinished run.*--resume"):
@@ -262,13 +270,13 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_weights(tiny, tmp_path,
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=300)
     if sig == signal.SIGINT:
-        assert proc.returncode == 130 and "continue with --resume" in err, err
+        assert proc.returncode == 130 and "--resume" in err and "checkpoint is saved" in err, err
     ckpt = tmp_path / "b" / "checkpoint.pt"
-    assert not load_checkpoint(ckpt)["state"].get("finished"), "it finished before the signal"
+    assert not (tmp_path / "b" / "result.json").exists(), "it finished before the signal"
     subprocess.run(cmd + args + ["--out", str(tmp_path / "b"), "--resume"], check=True, env=env,
                    capture_output=True)
-    a = load_checkpoint(tmp_path / "a" / "checkpoint.pt")["model"]
-    b = load_checkpoint(ckpt)["model"]
+    a = _weights(tmp_path / "a" / "checkpoint.pt")
+    b = _weights(ckpt)
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
 
@@ -334,25 +342,25 @@ def test_a_flipped_bit_in_a_checkpoint_is_detected(tiny, tmp_path):
     """a flipped bit in a checkpoint's tensors used to load without complaint."""
     train(_config(tiny, tmp_path / "r", setup="prediction", max_iterations=1), progress=False)
     path = tmp_path / "r" / "checkpoint.pt"
-    weights = load_checkpoint(path)["model"]
+    weights = _weights(path)
     name = max(weights, key=lambda k: weights[k].numel())
     raw = path.read_bytes()
     offset = raw.find(weights[name].numpy().tobytes())
     assert offset > 0
     _flip_bit(path, offset + 3 * weights[name].element_size(), 0)  # the 4th element's mantissa
     loaded = torch.load(path, weights_only=False)  # torch itself does not notice
-    assert not torch.equal(loaded["model"][name], weights[name])
+    assert not torch.equal(loaded["state"]["model"][name], weights[name])
     with pytest.raises(ValueError, match="damaged: its contents do not match the SHA-256 digest"):
-        load_checkpoint(path)
-    with pytest.raises(ValueError, match="damaged: .*--resume.*--overwrite"):  # what to do
+        _checkpoint(path)
+    with pytest.raises(ValueError, match="damaged: .*--overwrite"):  # what to do
         train(_config(tiny, tmp_path / "r", setup="prediction", max_iterations=1),
               resume=True, progress=False)
     # A checkpoint from before digests loads with a warning.
     del loaded["sha256"]
-    loaded["model"][name] = weights[name]
+    loaded["state"]["model"][name] = weights[name]
     torch.save(loaded, path)
     with pytest.warns(UserWarning, match="no digest"):
-        load_checkpoint(path)
+        _checkpoint(path)
 
 
 def test_dataset_from_another_configuration_is_refused(tiny, tmp_path):
@@ -394,7 +402,7 @@ def test_solver_blow_up_skips_the_update_instead_of_ending_the_run(tiny, tmp_pat
 
     monkeypatch.setattr(NeuralStepper, "solve", blows_up_once)
     train(_config(tiny, tmp_path / "b", max_iterations=4), progress=False)
-    history = load_checkpoint(tmp_path / "b" / "checkpoint.pt")["history"]
+    history = _checkpoint(tmp_path / "b" / "checkpoint.pt")["history"]
     assert [h["skipped"] for h in history] == [False, True, False, False]
 
 
@@ -487,16 +495,17 @@ def test_rollback_guard_restores_the_best_weights_and_halves_the_rate(tiny, tmp_
     cfg = _config(tiny, tmp_path / "g", epochs=400, checkpoint_every=1000, max_iterations=400,
                   rollback=3.0, spike_factor=1e12, lr_decay=1.0)
     model = train(cfg, progress=False)
-    ckpt = load_checkpoint(tmp_path / "g" / "checkpoint.pt")
-    assert ckpt["state"]["rollbacks"] == 1 and ckpt["state"]["lr_scale"] == 0.5
+    ckpt = _checkpoint(tmp_path / "g" / "checkpoint.pt")
+    progress = ckpt["state"]["progress"]
+    assert progress["rollbacks"] == 1 and progress["lr_scale"] == 0.5
     # the weights are those of the best window, before the runaway
-    for key, value in ckpt["best"]["model"].items():
+    for key, value in ckpt["state"]["kept"]["model"].items():
         assert torch.equal(model.state_dict()[key], value)
     assert len(ckpt["history"]) == 400 and ckpt["history"][-1]["lr"] == pytest.approx(1e-3)
     # the next update runs at half the rate
     train(_config(tiny, tmp_path / "g", epochs=400, checkpoint_every=1000, max_iterations=401,
                   rollback=3.0, spike_factor=1e12, lr_decay=1.0), resume=True, progress=False)
-    history = load_checkpoint(tmp_path / "g" / "checkpoint.pt")["history"]
+    history = _checkpoint(tmp_path / "g" / "checkpoint.pt")["history"]
     assert history[-1]["lr"] == pytest.approx(5e-4)
 
 
@@ -504,16 +513,16 @@ def test_rollback_option_is_checked_and_old_checkpoints_resume(tiny, tmp_path):
     with pytest.raises(UserError, match="'rollback'.*0 \\(off\\) or a number > 1"):
         _config(tiny, tmp_path / "r", rollback=0.5)
     train(_config(tiny, tmp_path / "old", max_iterations=2), progress=False)
-    # a checkpoint written before the option existed resumes with it off
+    # a checkpoint written before the guard kept its state resumes with the guard's defaults
     path = tmp_path / "old" / "checkpoint.pt"
-    ckpt = load_checkpoint(path)
-    del ckpt["config"]["rollback"]
+    ckpt = _checkpoint(path)
     for key in ("lr_scale", "best", "rollbacks"):
-        del ckpt["state"][key]
-    del ckpt["best"]
+        del ckpt["state"]["progress"][key]
+    del ckpt["state"]["kept"]
     save_checkpoint(ckpt, path)
     train(_config(tiny, tmp_path / "old", max_iterations=4), resume=True, progress=False)
-    assert len(load_checkpoint(path)["history"]) == 4
+    ckpt = _checkpoint(path)
+    assert len(ckpt["history"]) == 4 and ckpt["state"]["progress"]["lr_scale"] == 1.0
 
 
 def test_overwrite_never_discards_somebody_elses_files(tiny, tmp_path):
@@ -522,7 +531,7 @@ def test_overwrite_never_discards_somebody_elses_files(tiny, tmp_path):
     (theirs / "config.json").write_text('{"owner": "someone else"}')
     (theirs / "notes.txt").write_text("mine")
     for overwrite in (False, True):
-        with pytest.raises(RunExists, match="another run or other files"):
+        with pytest.raises(RunExists, match="another command's run or other files"):
             train(_config(tiny, theirs), overwrite=overwrite, progress=False)
     assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
     assert (theirs / "notes.txt").exists()

@@ -12,7 +12,6 @@ member equal to its separate run.
 from __future__ import annotations
 
 import math
-import warnings
 from functools import partial
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from adjointsim.runner import Study, register_study
 from .. import data as datamod
 from ..ensemble import train_ensemble
 from ..evaluate import TEST_SPLITS, evaluate
-from ..trainer import DTYPES, TrainConfig, build_model, describe, load_checkpoint, train
+from ..trainer import DTYPES, TrainConfig, describe, train
 
 #: per problem: the grid, the evaluation horizon and the training settings per study size
 STUDIES = {
@@ -96,15 +95,26 @@ def _config(cell: dict, run_dir: Path) -> TrainConfig:
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Train (resuming from the cell's checkpoint if there is one) and evaluate one model."""
     cfg = _config(cell, run_dir)
-    return _row(cell, cfg, train(cfg, resume=True, progress=False), run_dir)
+    return _row(cell, cfg, train(cfg, resume=_started(run_dir), progress=False), run_dir)
 
 
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
-    """Train (resuming where they have checkpoints) the cells' models as one ensemble, then
+    """Train (resuming those a retried cell started) the cells' models as one ensemble, then
     evaluate each; returns their rows."""
     cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
-    models = train_ensemble(cfgs, resume=True, progress=False)
+    models: list = [None] * len(cfgs)
+    for resume in (True, False):  # --resume needs a run to continue
+        idx = [k for k, d in enumerate(run_dirs) if _started(d) == resume]
+        if idx:
+            trained = train_ensemble([cfgs[k] for k in idx], resume=resume, progress=False)
+            for k, model in zip(idx, trained):
+                models[k] = model
     return [_row(*args) for args in zip(cells, cfgs, models, run_dirs)]
+
+
+def _started(run_dir: Path) -> bool:
+    """Whether a cell's run directory holds its run (to resume, or to return as it is)."""
+    return (run_dir / "config.json").exists()
 
 
 def _row(cell: dict, cfg: TrainConfig, model, run_dir: Path) -> dict:
@@ -128,21 +138,6 @@ def _report(problem: str, rows: list[dict], out: Path) -> str:
     write_summary(rows, out, STUDIES[problem]["horizon"])
     return (table(rows) + f"\nplots: {out / 'study.png'}, learning curves {out / 'curves.png'}"
             f"; per-model results and rollout plots under {out}")
-
-
-def load_model(run: str | Path):
-    """Rebuild a trained model from its run directory."""
-    ckpt = load_checkpoint(Path(run) / "checkpoint.pt")
-    if not ckpt["state"].get("finished"):
-        warnings.warn(
-            f"{run} holds an unfinished run (stopped after {ckpt['state']['total']} iterations); "
-            "finish it by running its `adjointsim train` command again with --resume, or expect "
-            "a partly trained model",
-            stacklevel=2,
-        )
-    model = build_model(TrainConfig(**ckpt["config"]))
-    model.load_state_dict(ckpt["model"])
-    return model, TrainConfig(**ckpt["config"])
 
 
 def table(rows: list[dict]) -> str:
