@@ -17,8 +17,10 @@ the worker) from what ``run_cell`` returns, so a rerun submits only unfinished c
 retried task (an exception, or a worker that died) starts ``run_cell`` again in the same
 directory, where it resumes from its own checkpoint. Failures are reported per cell while the
 others finish; :class:`CellsFailed` carries both. A row file is checked when it is read back
-(JSON, of its cell's configuration, with the study's declared :attr:`Study.row_keys`) and so is
-every row that ``reuse`` would adopt, all of them before any is copied.
+(JSON, of its cell's configuration, holding results, with the study's declared
+:attr:`Study.row_keys`) and so is every row that ``reuse`` would adopt, all of them (and the
+study's report of them) before any is copied. While cells run or rows are adopted, the study
+directory is locked (``OUT/.study.lock``): a second study there is refused.
 
 Dask is imported only inside the functions that need it, so other commands do not pay for it.
 No torch import here either: the worker gets one thread through the environment.
@@ -34,8 +36,11 @@ import math
 import os
 import re
 import shlex
+import socket
 import sys
+import tempfile
 import threading
+import time
 import uuid
 import warnings
 from collections import Counter
@@ -54,6 +59,7 @@ from adjointsim.errors import UserError
 from adjointsim.files import write_text
 
 ROW_FILE = "row.json"
+LOCK_FILE = ".study.lock"
 _ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 # Seconds to get a connection to a scheduler (Dask retries a refused one meanwhile: a scheduler
 # may still be starting), and then at most this much longer for its answer. Dask leaves its
@@ -77,7 +83,9 @@ class Study:
     (``float`` also admits an int, and null, which a non-finite number is written as), or a
     function of the cell giving them when cells differ. Declared, it is checked on every row
     read back or reused; without it, a reused row must hold what the other rows of cells of its
-    kind (the same keys and text values) all hold, with values of the same kind.
+    kind (the same keys and text values) all hold, and under each key a value of the kind the
+    study's other rows hold there. Either way a row holds some result besides its cell's keys,
+    and rows are adopted only once the study's ``report`` has run on them.
 
     ``pack`` (with ``run_group``): the keys in which cells may differ and still train together
     as one ensemble (``("seed",)``, say); the runner submits one task per group of cells equal
@@ -145,7 +153,8 @@ def run(
 
     ``reuse``: a JSON list of rows of an earlier run (its ``rows.json`` or ``--json`` file,
     e.g. committed from another machine); a cell with a row there is finished, once that row
-    is checked to be of the same configuration and copied to ``OUT/<id>/row.json``.
+    is checked to be of the same configuration and copied to ``OUT/<id>/row.json``. A file
+    that does not fit (rows of another study, or one unfit row) is refused whole.
 
     Returns the rows in cell order; raises :class:`CellsFailed` (after writing what finished)
     if any cell failed.
@@ -163,34 +172,22 @@ def run(
     cells = study.cells(size, seeds)
     _check_ids(cells, study_name)
     rows = _finished_rows(study, cells, out)
-    if reuse is not None:
-        rows.update(_adopt(study, cells, reuse, out, rows))
-    todo = [c for c in cells if c["id"] not in rows]
+    adopted = _reusable(study, cells, size, reuse, rows) if reuse is not None else {}
     failures: list[tuple[str, str]] = []
-    if todo:
-        out.mkdir(parents=True, exist_ok=True)
+    if adopted or any(c["id"] not in rows for c in cells):
         with ExitStack() as stack:
-            # The cluster first: a remote one that is unreachable or unfit fails before the
-            # study's shared inputs are made.
-            client = (None if cluster == "none" else stack.enter_context(
-                _dask_client(study, out, cluster, min(jobs, len(todo)), retries)))
-            extra = study.prepare(size, out) if study.prepare is not None else {}
-            todo = [{**c, **extra} for c in todo]
-            bar = stack.enter_context(tqdm(total=len(todo), desc=f"{study_name} cells",
-                                           unit="cell", disable=not progress))
-
-            def done(cell_id: str, row: dict | None, error: str | None) -> None:
-                if error is None:
+            stack.enter_context(study_lock(out))
+            # another study may have finished cells here before this one took the lock
+            rows = _finished_rows(study, cells, out)
+            for cell_id, row in adopted.items():
+                if cell_id not in rows:
+                    (out / cell_id).mkdir(exist_ok=True)
+                    write_text(out / cell_id / ROW_FILE, dumps(row))
                     rows[cell_id] = row
-                else:
-                    failures.append((cell_id, error))
-                    bar.write(f"{study_name}: cell {cell_id} failed: {error}")
-                bar.update()
-
-            if client is None:
-                _run_here(study, todo, out, retries, done)
-            else:
-                _run_on_dask(client, study, todo, out, retries, done)
+            todo = [c for c in cells if c["id"] not in rows]
+            if todo:
+                _run_cells(stack, study, todo, size, out, cluster, jobs, retries, progress, rows,
+                           failures)
     finished = [rows[c["id"]] for c in cells if c["id"] in rows]
     write_text(out / "rows.json", dumps(finished))
     if finished and report:
@@ -199,6 +196,65 @@ def run(
         order = {c["id"]: i for i, c in enumerate(cells)}
         raise CellsFailed(study_name, sorted(failures, key=lambda f: order[f[0]]), finished)
     return finished
+
+
+def _run_cells(stack: ExitStack, study: Study, todo: list[dict], size: str, out: Path,
+               cluster: str, jobs: int, retries: int, progress: bool, rows: dict[str, dict],
+               failures: list[tuple[str, str]]) -> None:
+    """Run ``todo`` on ``cluster`` (its client and the progress bar entered on ``stack``),
+    adding each finished row to ``rows`` and each failure to ``failures``."""
+    # The cluster first: a remote one that is unreachable or unfit fails before the study's
+    # shared inputs are made.
+    client = (None if cluster == "none" else stack.enter_context(
+        _dask_client(study, out, cluster, min(jobs, len(todo)), retries)))
+    extra = study.prepare(size, out) if study.prepare is not None else {}
+    todo = [{**c, **extra} for c in todo]
+    bar = stack.enter_context(tqdm(total=len(todo), desc=f"{study.name} cells", unit="cell",
+                                   disable=not progress))
+
+    def done(cell_id: str, row: dict | None, error: str | None) -> None:
+        if error is None:
+            rows[cell_id] = row
+        else:
+            failures.append((cell_id, error))
+            bar.write(f"{study.name}: cell {cell_id} failed: {error}")
+        bar.update()
+
+    if client is None:
+        _run_here(study, todo, out, retries, done)
+    else:
+        _run_on_dask(client, study, todo, out, retries, done)
+
+
+@contextmanager
+def study_lock(out: Path):
+    """Hold the study directory ``out`` (created if need be) for this process: a second study
+    there is refused with one line naming the first. The lock is the operating system's
+    (``flock`` on ``OUT/.study.lock``) and goes with the process holding it, so the file left
+    by a killed study is taken over by the next. (Where there is no ``flock``, on Windows,
+    nothing is locked.)"""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / LOCK_FILE
+    with open(os.open(path, os.O_RDWR | os.O_CREAT, 0o644), "r+") as file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = file.read().strip() or "another process"
+            raise UserError(f"{out} is in use by another study ({holder}); wait for it to "
+                            "finish, or give another --out") from None
+        file.truncate()
+        file.write(f"pid {os.getpid()} on {socket.gethostname()}, since "
+                   f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        file.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(file, fcntl.LOCK_UN)
 
 
 def resolve_cluster(cluster: str | None) -> str:
@@ -271,7 +327,8 @@ def _read_row(cell: dict, run_dir: Path, expected: RowKeys | None
     if differ:
         raise ValueError(f"{path} holds a result of another configuration (differs in "
                          f"{differ}); use another --out, or delete {run_dir} to redo the cell")
-    problem = _unfit(row, expected) if expected is not None else None
+    problem = _resultless(cell, row) or (_unfit(row, expected) if expected is not None
+                                         else None)
     return (None, problem) if problem else (row, None)
 
 
@@ -302,20 +359,19 @@ def _differs(cell: dict, row: dict) -> list[str]:
     return sorted(k for k, v in cell.items() if _jsonable(v) != row.get(k))
 
 
-def _adopt(study: Study, cells: list[dict], path: str | Path, out: Path,
-           finished: dict[str, dict]) -> dict[str, dict]:
-    """Write the rows of ``path`` that belong to ``cells`` as their run directories' row
-    files (a cell that already has one keeps it) and return them by cell id. Every row is
-    checked first and one unfit row (of another configuration, without the results of a
-    finished cell) refuses them all: a row copied into a run directory stays there."""
-    try:
-        given = json.loads(Path(path).read_text())
-        if not (isinstance(given, list) and all(isinstance(r, dict) for r in given)):
-            raise ValueError("not a JSON list of rows")
-    except (OSError, ValueError) as e:
-        raise ValueError(f"--reuse {path}: cannot read its rows ({e}); give a rows.json or "
-                         "--json file of an earlier run of this study") from None
-    by_id = {r.get("id"): r for r in given}
+def _reusable(study: Study, cells: list[dict], size: str, path: str | Path,
+              finished: dict[str, dict]) -> dict[str, dict]:
+    """The rows of ``path`` that finish cells without a row yet, by cell id, once every one
+    is checked (its configuration, its results, the study's report of it with the finished
+    rows): one unfit row refuses them all, before any is copied (a row copied into a run
+    directory stays there)."""
+    given = _rows_file(path)
+    ids = [c["id"] for c in cells]
+    if given and not set(ids) & {r["id"] for r in given}:
+        raise UserError(f"--reuse {path}: none of its rows ({_listed([r['id'] for r in given])})"
+                        f" is a cell of study {study.name} at size {size} "
+                        f"({_listed(ids)}); give the rows of an earlier run of this study")
+    by_id = {r["id"]: r for r in given}
     adopted: dict[str, dict] = {}
     for cell in cells:
         row = by_id.get(cell["id"])
@@ -323,47 +379,84 @@ def _adopt(study: Study, cells: list[dict], path: str | Path, out: Path,
             continue
         differ = _differs(cell, row)
         if differ:
-            raise ValueError(f"--reuse {path}: its row {cell['id']!r} is of another "
-                             f"configuration (differs in {differ}); it belongs to another "
-                             "size or version of the study")
+            raise UserError(f"--reuse {path}: its row {cell['id']!r} is of another "
+                            f"configuration (differs in {differ}); it belongs to another "
+                            "size or version of the study")
         adopted[cell["id"]] = row
     unfit = _unfit_rows(study, cells, adopted, {**finished, **adopted})
+    if not unfit and adopted:
+        rows = [{**finished, **adopted}[i] for i in ids if i in finished or i in adopted]
+        error = _report_error(study, rows)
+        if error is not None:
+            named = _breaking(study, rows, error) or list(adopted)
+            unfit = [(named[0], f"breaks the study's report ({_one_line(error)})"),
+                     *((cid, "") for cid in named[1:])]
     if unfit:
         (first, problem), *more = unfit
         others = (f"; and {len(more)} more row{'s' * (len(more) > 1)} "
-                  f"({', '.join(cid for cid, _ in more[:5])}{', ...' * (len(more) > 5)})"
-                  if more else "")
+                  f"({_listed([cid for cid, _ in more])})" if more else "")
         raise UserError(f"--reuse {path}: its row {first!r} {problem}{others}; nothing was "
                         "copied: give a --json or rows.json file of a run of this version of "
                         "the study, or remove these rows from it to run their cells here")
-    for cell_id, row in adopted.items():
-        run_dir = out / cell_id
-        run_dir.mkdir(parents=True, exist_ok=True)
-        write_text(run_dir / ROW_FILE, dumps(row))
     return adopted
+
+
+def _rows_file(path: str | Path) -> list[dict]:
+    """The rows of a ``--reuse`` file: a JSON list of objects, each with its own cell id."""
+    try:
+        given = json.loads(Path(path).read_text())
+        if not (isinstance(given, list) and all(isinstance(r, dict) for r in given)):
+            raise ValueError("not a JSON list of rows")
+    except (OSError, ValueError) as e:
+        raise UserError(f"--reuse {path}: cannot read its rows ({e}); give a rows.json or "
+                        "--json file of an earlier run of this study") from None
+    seen: set[str] = set()
+    for number, row in enumerate(given, 1):
+        cid = row.get("id")
+        problem = ("has no cell id (a text under 'id')" if not isinstance(cid, str)
+                   else f"repeats the id {cid!r}" if cid in seen else None)
+        if problem:
+            raise UserError(f"--reuse {path}: its row number {number} {problem}; give a "
+                            "rows.json or --json file of an earlier run of this study")
+        seen.add(cid)
+    return given
+
+
+def _listed(ids: list[str], most: int = 5) -> str:
+    return ", ".join(ids[:most]) + (f", ... ({len(ids)} in all)" if len(ids) > most else "")
 
 
 def _unfit_rows(study: Study, cells: list[dict], candidates: dict[str, dict],
                 known: dict[str, dict]) -> list[tuple[str, str]]:
-    """``(cell id, what is wrong)`` for each candidate row, in cell order: checked against the
-    study's declared keys, or else against the other ``known`` rows of cells of the same kind
-    (which all come from one study, so what all of them hold, a finished row holds)."""
+    """``(cell id, what is wrong)`` for each candidate row, in cell order: a row without
+    results, or one unfit for the study's declared keys, or else for the other ``known`` rows
+    (which all come from one study): what all rows of cells of its kind hold, it holds, and
+    under each key it holds a value of the kind the other rows hold there."""
     groups: dict[frozenset, list[dict]] = {}
     for cell in cells:
         if cell["id"] in known:
             groups.setdefault(_kind_of(cell), []).append(known[cell["id"]])
     peers = {sig: _Peers(rows) for sig, rows in groups.items()}
+    kinds = _ValueKinds([known[c["id"]] for c in cells if c["id"] in known])
     unfit = []
     for cell in cells:
         row = candidates.get(cell["id"])
         if row is None:
             continue
         expected = study.expected_keys(cell)
-        problem = (_unfit(row, expected) if expected is not None
-                   else peers[_kind_of(cell)].unfit(row))
+        problem = _resultless(cell, row) or (
+            _unfit(row, expected) if expected is not None
+            else peers[_kind_of(cell)].unfit(row) or kinds.unfit(row))
         if problem:
             unfit.append((cell["id"], problem))
     return unfit
+
+
+def _resultless(cell: dict, row: dict) -> str | None:
+    """Says so if ``row`` holds nothing besides its cell's keys."""
+    if set(row) <= set(cell) | _NOTE_KEYS:
+        return "holds no results, only its cell's configuration"
+    return None
 
 
 def _kind_of(cell: dict) -> frozenset:
@@ -374,31 +467,50 @@ def _kind_of(cell: dict) -> frozenset:
 
 
 class _Peers:
-    """What rows of one kind hold: how many hold each key, and the kinds of its values."""
+    """What rows of one kind hold: how many hold each key."""
 
     def __init__(self, rows: list[dict]):
         self.n = len(rows)
         self.holding = Counter(k for r in rows for k in r if k not in _NOTE_KEYS)
-        self.kinds = {k: Counter(_kind(r[k]) for r in rows if k in r) for k in self.holding}
 
     def unfit(self, row: dict) -> str | None:
-        """What ``row`` (one of the rows) lacks that all the others hold, or holds as a value
-        of another kind than all the others' (nulls aside, two at least)."""
+        """What ``row`` (one of the rows) lacks that all the others hold."""
         others = self.n - 1
-        if others == 0:
-            return None
         missing = [k for k, n in self.holding.items() if n == others and k not in row]
-        if missing:
+        if others and missing:
             return f"lacks {', '.join(map(repr, missing))}, which the other rows hold"
+        return None
+
+
+class _ValueKinds:
+    """The rows holding each kind of value (number, string, list, ...) under each key, across
+    the rows of a study; nulls (non-finite numbers) aside."""
+
+    def __init__(self, rows: list[dict]):
+        self.holders: dict[str, dict[str, list[str]]] = {}
+        for row in rows:
+            for key, value in row.items():
+                if key not in _NOTE_KEYS and value is not None:
+                    self.holders.setdefault(key, {}).setdefault(_kind(value), []).append(
+                        row["id"])
+
+    def unfit(self, row: dict) -> str | None:
+        """A value of ``row`` (one of the rows) of a kind no other row holds there, where the
+        others agree on one kind; with a single other row, either may be the damaged one."""
         for key, value in row.items():
+            if key in _NOTE_KEYS or value is None:
+                continue
             kind = _kind(value)
-            others_kinds = self.kinds.get(key, Counter()) - Counter([kind])
-            others_kinds.pop("null", None)
-            # one other row against this one cannot tell which of the two is wrong
-            if (kind != "null" and len(others_kinds) == 1 and kind not in others_kinds
-                    and others_kinds.total() > 1):
-                return (f"holds {_short(value)} under {key!r} where the other rows hold a "
-                        f"{next(iter(others_kinds))}")
+            others = {k: [i for i in ids if i != row["id"]]
+                      for k, ids in self.holders.get(key, {}).items()}
+            others = {k: ids for k, ids in others.items() if ids}
+            if kind in others or len(others) != 1:
+                continue
+            (other_kind, ids), = others.items()
+            if len(ids) == 1:
+                return (f"holds {_short(value)} under {key!r} where row {ids[0]!r} holds a "
+                        f"{other_kind} (one of the two is damaged)")
+            return f"holds {_short(value)} under {key!r} where the other rows hold a {other_kind}"
         return None
 
 
@@ -440,23 +552,54 @@ def _short(value: Any) -> str:
 
 
 def write_report(study_name: str, rows: list[dict], out: Path) -> str:
-    """The study's report of ``rows`` (written under ``out``; its text returned). A row
-    without a key that the report reads and other rows hold (damaged, or of another version
-    of the study) is named with how to run its cell again, in place of a KeyError."""
+    """The study's report of ``rows`` (written under ``out``; its text returned). Rows the
+    report fails on (damaged, or of another version of the study) are named, with the
+    command that removes them so that a rerun runs their cells again, in place of the
+    report's traceback."""
+    study = get_study(study_name)
     try:
-        return get_study(study_name).report(rows, out)
-    except KeyError as e:
-        key = e.args[0] if len(e.args) == 1 else None
-        lacking = [r.get("id") for r in rows if isinstance(key, str) and key not in r]
-        if not lacking or len(lacking) == len(rows):
+        return study.report(rows, out)
+    except Exception as e:
+        named = _breaking(study, rows, e)
+        if not named:
             raise
-        paths = [out / str(cid) / ROW_FILE for cid in lacking]
-        listed = ", ".join(map(str, paths))
-        raise UserError(
-            f"{listed} {'lacks' if len(paths) == 1 else 'lack'} {key!r}, which the study's "
-            "report reads and its other rows hold (a damaged row, or one of another version "
-            f"of the study); delete {'it' if len(paths) == 1 else 'them'} to run "
-            f"{'that cell' if len(paths) == 1 else 'those cells'} again") from None
+        paths = [out / cid / ROW_FILE for cid in named]
+        listed = _listed([str(p) for p in paths])
+        what = (f"{listed} {'lacks' if len(paths) == 1 else 'lack'} {e.args[0]!r}, which the "
+                "study's report reads" if isinstance(e, KeyError)
+                else f"the study's report fails on {listed} ({_one_line(e)})")
+        raise UserError(f"{what}: damaged rows, or rows of another version of the study; "
+                        "delete them to run their cells again: rm "
+                        + " ".join(shlex.quote(str(p)) for p in paths)) from None
+
+
+def _report_error(study: Study, rows: list[dict]) -> Exception | None:
+    """What the study's report of ``rows`` raises (run in a directory of its own), if
+    anything."""
+    with tempfile.TemporaryDirectory(prefix="adjointsim-report-") as tmp:
+        try:
+            study.report(rows, Path(tmp))
+        except Exception as e:  # what it is, the caller says
+            return e
+    return None
+
+
+def _breaking(study: Study, rows: list[dict], error: Exception) -> list[str]:
+    """The ids of the rows that the report's ``error`` comes from: those lacking the key of a
+    KeyError, or else the rows holding a value of a kind the other rows do not hold there
+    (see :class:`_ValueKinds`) without which the report runs, one alone if one will do; empty
+    if neither."""
+    if isinstance(error, KeyError) and len(error.args) == 1:
+        lacking = [r["id"] for r in rows if error.args[0] not in r]
+        if lacking:
+            return lacking
+    kinds = _ValueKinds(rows)
+    odd = [r["id"] for r in rows if kinds.unfit(r)]
+    # one of them alone first: of two rows disagreeing on a kind, only one may be damaged
+    for named in [*([cid] for cid in odd), odd]:
+        if named and _report_error(study, [r for r in rows if r["id"] not in named]) is None:
+            return named
+    return []
 
 
 def dumps(obj: Any) -> str:

@@ -1,7 +1,8 @@
 """The Dask study runner (adjointsim.runner) on one machine: a 2-worker local cluster, a
 worker killed mid-cell, a failing cell, a rerun that runs nothing, a real `dask scheduler`
 and `dask worker` reached by --cluster and by DASK_SCHEDULER_ADDRESS, addresses where no
-scheduler answers, and rows (reused or damaged) that lack results.
+scheduler answers, rows (reused or damaged) that lack results or that the study's report
+cannot read, and a study directory locked while a study runs in it.
 
 The cells are the test-only study in tests/_runner_cells.py (importable by worker processes).
 """
@@ -307,6 +308,7 @@ def _study(out: Path, name: str, seeds: int, *extra: str) -> list[str]:
     ({"id": "ok-2", "seed": 2, "pid": 1, "solver_threads": 1}, "lacks 'threads', 'value'"),
     ({"id": "ok-2", "seed": 2, "pid": 1, "threads": 1, "solver_threads": 1, "value": "1.5"},
      "holds '1.5' under 'value' where the other rows hold a number"),
+    ({"id": "ok-2", "seed": 2}, "holds no results, only its cell's configuration"),
 ])
 def test_reused_rows_are_checked_whole_and_a_bad_one_copies_nothing(bad, says, tmp_path,
                                                                      capsys):
@@ -420,3 +422,109 @@ def test_a_packed_study_runs_one_task_per_group_and_only_the_unfinished_members(
     runner.run("runner-packed", out, "ok", 3, cluster="none", progress=False)
     assert _calls(out)[2:] == ["a-2", "b-2"]
     assert json.loads((out / "a-0" / "row.json").read_text())["members"] == 2
+
+
+def _summing_report(rows: list[dict], out: Path) -> str:
+    """A report that adds the rows' values, as a study's table does."""
+    return f"total {sum(r['value'] for r in rows):.3f}"
+
+
+runner.register_study(runner.Study("runner-summing", ("ok",), _runner_cells.cells,
+                                   _runner_cells.run_cell, _summing_report))
+
+
+def _tree(out: Path) -> list[Path]:
+    return sorted(p.relative_to(out) for p in out.rglob("*")) if out.exists() else []
+
+
+def test_a_rows_file_that_does_not_fit_is_refused_whole(tmp_path, capsys):
+    """Rows without cell ids, repeated ids, rows of another study, rows whose values the
+    study's report cannot use (two rows disagreeing on a kind; a key all rows lack): each
+    refused in one line, with nothing copied; the good file is then adopted."""
+    good = tmp_path / "good.json"
+    assert main(_study(tmp_path / "first", "runner-summing", 2, "--json", str(good))) == 0
+    rows = json.loads(good.read_text())
+    packed = tmp_path / "packed.json"
+    runner.run("runner-packed", tmp_path / "packed", "ok", 1, cluster="none", progress=False)
+    packed.write_text((tmp_path / "packed" / "rows.json").read_text())
+    cases = {
+        "listed": ([{**rows[0], "id": [rows[0]["id"]]}, rows[1]],
+                   "its row number 1 has no cell id (a text under 'id')"),
+        "twice": ([*rows, rows[1]], "its row number 3 repeats the id 'ok-1'"),
+        "abc": ([{**rows[0], "value": "abc"}, rows[1]],
+                "its row 'ok-0' holds 'abc' under 'value' where row 'ok-1' holds a number "
+                "(one of the two is damaged)"),
+        "unread": ([{k: v for k, v in r.items() if k != "value"} for r in rows],
+                   "its row 'ok-0' breaks the study's report (KeyError: 'value'); and 1 more "
+                   "row (ok-1)"),
+    }
+    out = tmp_path / "fresh"
+    for name, (given, says) in cases.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(given))
+        assert main(_study(out, "runner-summing", 2, "--reuse",
+                           str(tmp_path / f"{name}.json"))) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--reuse {tmp_path / f'{name}.json'}: {says}" in err
+        assert _tree(out) == []
+    assert main(_study(out, "runner-summing", 2, "--reuse", str(packed))) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert ("none of its rows (a-0, b-0) is a cell of study runner-summing at size ok "
+            "(ok-0, ok-1); give the rows of an earlier run of this study") in err
+    assert main(_study(out, "runner-summing", 2, "--reuse", str(good))) == 0
+    assert "total" in capsys.readouterr().out and not (out / "calls.log").exists()
+
+
+def test_a_row_the_report_cannot_read_is_named_and_a_rerun_heals(tmp_path, capsys):
+    """A row.json edited in the study directory: without results it is damaged before any
+    cell runs; with a value the report cannot add, the report's failure names that row (not
+    its sound neighbour) with the command that removes it; then a rerun runs that cell."""
+    out = tmp_path / "study"
+    argv = _study(out, "runner-summing", 2)
+    assert main(argv) == 0
+    path = out / "ok-1" / "row.json"
+    row = json.loads(path.read_text())
+    path.write_text(json.dumps({"id": "ok-1", "seed": 1}))
+    capsys.readouterr()
+    assert main(argv) == 2
+    assert (f"{path} is damaged (holds no results, only its cell's configuration); delete it"
+            in capsys.readouterr().err)
+    path.write_text(json.dumps({**row, "value": "abc"}))
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert (f"the study's report fails on {path} (TypeError: unsupported operand" in err
+            and err.rstrip().endswith(f"delete them to run their cells again: rm {path}"))
+    calls = _calls(out)
+    path.unlink()
+    assert main(argv) == 0
+    assert [c.split()[0] for c in _calls(out)[len(calls):]] == ["ok-1"]
+    assert json.loads(path.read_text())["value"] == row["value"]
+
+
+def test_a_study_directory_is_locked_while_a_study_runs_in_it(tmp_path, capsys):
+    """A second study in the same directory is refused, naming the first; once that one is
+    killed, its lock file is taken over and the study runs."""
+    out = tmp_path / "study"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\n"
+         "from pathlib import Path\n"
+         "from adjointsim.runner import study_lock\n"
+         "with study_lock(Path(sys.argv[1])):\n"
+         "    print('held', flush=True)\n"
+         "    time.sleep(120)\n", str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        argv = _study(out, "runner-test", 1)
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1
+        assert (f"{out} is in use by another study (pid {holder.pid} on {socket.gethostname()}"
+                in err and "wait for it to finish, or give another --out" in err)
+        assert not (out / "ok-0").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert (out / runner.LOCK_FILE).exists()
+    assert main(argv) == 0
+    assert [c.split()[0] for c in _calls(out)] == ["ok-0"]
