@@ -5,16 +5,19 @@ A dataset file holds one group per split (``train``, ``interpolation``, ``extrap
 the problem's configuration as attributes. Files are written to a temporary name and renamed, so
 an interrupted run never leaves a half-written dataset behind.
 
-Every dataset in the file carries HDF5's Fletcher-32 checksum (format version 2), verified by
-HDF5 on every read: a flipped bit is reported as a damaged file with the command that
-regenerates it. Files of format version 1 (no checksums) still load, with a warning. A file
-rewritten through h5py passes its checksums, so the metadata are cross-checked too: the
-attributes against each other and this version's problems, and each split's arrays against what
-the ``config`` attribute generates.
+Every dataset in the file carries HDF5's Fletcher-32 checksum, verified by HDF5 on every read: a
+flipped bit is reported as a damaged file with the command that regenerates it. A file rewritten
+through h5py passes its checksums (HDF5 recomputes them on write), so the file also holds the
+SHA-256 digest of each attribute that defines the data and of each array, written with them and
+compared on load (format version 3): an edited seed or trajectory is named. The metadata are
+cross-checked too: the attributes against each other and this version's problems, and each
+split's arrays against what the ``config`` attribute generates. Older files still load, with a
+warning: format version 2 (no digests) and 1 (no checksums either).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import warnings
 from dataclasses import dataclass
@@ -30,8 +33,11 @@ from adjointsim.stepper import NonFiniteStateError
 
 from .problems import PROBLEMS, Problem, get_problem
 
-#: 2: every dataset has a Fletcher-32 checksum; 1: none (loaded with a warning)
-FORMAT_VERSION = 2
+#: 3: SHA-256 digests of the defining attributes and the arrays (attribute ``digests``);
+#: 2: Fletcher-32 checksums only; 1: neither (2 and 1 load with a warning)
+FORMAT_VERSION = 3
+#: the attributes that define a dataset's contents, each covered by a digest
+DEFINING = ("problem", "size", "seed", "config")
 
 
 @dataclass
@@ -116,6 +122,7 @@ def save(dataset: Dataset, path: str | Path) -> Path:
         f.attrs["size"] = dataset.size
         f.attrs["seed"] = dataset.seed
         f.attrs["config"] = json.dumps(_scene_config(dataset.problem, dataset.size))
+        digests = {key: _attribute_digest(f.attrs[key]) for key in DEFINING}
         for name, split in dataset.splits.items():
             g = f.create_group(name)
             for key in ARRAYS:
@@ -123,8 +130,23 @@ def save(dataset: Dataset, path: str | Path) -> Path:
                 # One chunk (and checksum) per trajectory: HDF5's automatic chunks split the
                 # grid and read about 2x slower.
                 chunks = (1, *a.shape[1:]) if a.ndim > 1 else a.shape
-                g.create_dataset(key, data=a, fletcher32=True, chunks=chunks)
+                d = g.create_dataset(key, data=a, fletcher32=True, chunks=chunks)
+                digests[f"{name}/{key}"] = _array_digest(d[...])
+        f.attrs["digests"] = json.dumps(digests)
     return path
+
+
+def _attribute_digest(value: object) -> str:
+    """SHA-256 of an attribute's value as h5py reads it back (a NumPy scalar as its number)."""
+    value = value.item() if isinstance(value, np.generic) else value
+    return hashlib.sha256(json.dumps(value).encode()).hexdigest()
+
+
+def _array_digest(a: np.ndarray) -> str:
+    """SHA-256 of an array's type, shape and values."""
+    digest = hashlib.sha256(f"{a.dtype.str} {a.shape}".encode())
+    digest.update(np.ascontiguousarray(a).data)
+    return digest.hexdigest()
 
 
 ARRAYS = ("trajectories", "params", "conditions")
@@ -147,6 +169,11 @@ def load(path: str | Path) -> Dataset:
             if version == 1:
                 warnings.warn(f"{path} predates checksums (format version 1), so damage to it "
                               f"cannot be detected; to get them, {fix}", stacklevel=2)
+            elif version == 2:
+                warnings.warn(f"{path} predates content digests (format version 2), so an edit "
+                              f"of its seed or trajectories cannot be detected; to get them, "
+                              f"{fix}", stacklevel=2)
+            digests = _digests(f, path, version, fix, _regenerate(path, problem.name, size, "N"))
             splits = {}
             for name in problem.splits:
                 if name not in f:
@@ -156,7 +183,7 @@ def load(path: str | Path) -> Dataset:
                     if key not in f[name]:
                         raise DamagedFileError(f"{path} has no {name}/{key}; {fix}")
                     d = f[name][key]
-                    if version == FORMAT_VERSION and not d.fletcher32:
+                    if version >= 2 and not d.fletcher32:
                         raise DamagedFileError(f"{path}: {name}/{key} has no checksum; {fix}")
                     try:
                         arrays.append(d[...])
@@ -169,12 +196,42 @@ def load(path: str | Path) -> Dataset:
                 _check_split(path, name, split, problem, config, fix)
                 if not np.all(np.isfinite(split.trajectories)):
                     raise DamagedFileError(f"{path}: split {name!r} holds non-finite values; {fix}")
+                for key, a in zip(ARRAYS, arrays):
+                    if digests is not None and _array_digest(a) != digests.get(f"{name}/{key}"):
+                        raise DamagedFileError(
+                            f"{path}: {name}/{key} is not what the file was written with (its "
+                            f"digest differs: edited after writing); {fix}")
                 splits[name] = split
             return Dataset(problem, size, seed, splits)
     except (OSError, KeyError) as e:
         raise DamagedFileError(
             f"{path} is not a readable adjointsim dataset ({e}); {fix}"
         ) from None
+
+
+def _digests(f: h5py.File, path: Path, version: int, fix: str, seed_fix: str) -> dict | None:
+    """The digests a file of format version 3 was written with (None for an older file), once
+    its defining attributes are checked against them. ``seed_fix`` says how to regenerate the
+    file when its seed was edited (the one thing the command cannot know then)."""
+    if version < 3:
+        return None
+    text = f.attrs.get("digests")
+    try:
+        digests = json.loads(text) if isinstance(text, str) else None
+    except ValueError:
+        digests = None
+    if not isinstance(digests, dict):
+        raise DamagedFileError(f"{path} has no readable `digests` attribute; {fix}")
+    for key in DEFINING:
+        if _attribute_digest(f.attrs[key]) != digests.get(key):
+            raise DamagedFileError(f"{path}: its `{key}` attribute is {_short(_show(f.attrs[key]))}"
+                                   ", not what the file was written with (its digest differs: "
+                                   f"edited after writing); {seed_fix if key == 'seed' else fix}")
+    return digests
+
+
+def _short(text: str) -> str:
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _command(path: Path, problem: str = "PROBLEM", size: str = "SIZE", seed: int | str = 0) -> str:
@@ -223,7 +280,7 @@ def _metadata(f: h5py.File, path: Path) -> tuple[int, Problem, str, int, dict]:
     name, after checking them against each other and against this version's problems."""
     fix = _regenerate(path)
     version = f.attrs.get("format_version")
-    if not _is_integer(version) or version not in (1, FORMAT_VERSION):
+    if not _is_integer(version) or version not in (1, 2, FORMAT_VERSION):
         raise UserError(
             f"{path} has format version {_show(version)}, expected {FORMAT_VERSION}; {fix}"
         )

@@ -1,5 +1,5 @@
-"""Dataset files: damaged or edited metadata is refused with the file, the attribute and a
-command that regenerates the file (one the command line accepts)."""
+"""Dataset files: damaged or edited metadata or arrays are refused with the file, the attribute
+or array and a command that regenerates the file (one the command line accepts)."""
 
 import argparse
 import json
@@ -175,6 +175,64 @@ def test_a_missing_split_is_named(tiny, tmp_path):
         del f["train/conditions"]
 
     assert "has no train/conditions" in _damaged(tiny, tmp_path, edit)
+
+
+def test_an_edited_seed_is_named_and_the_seed_left_to_the_user(tiny, tmp_path):
+    """A plausible seed (7 for 0) passes every check of the metadata: only its digest tells."""
+    message = _damaged(tiny, tmp_path, _set("seed", 7))
+    assert ("its `seed` attribute is 7, not what the file was written with (its digest "
+            "differs: edited after writing)") in message
+    (args,) = _suggested_commands(message)
+    assert (args.problem, args.size) == ("ks", "tiny")
+    assert "--seed N" in message and "N: the seed it was made with" in message
+
+
+def test_a_config_attribute_rewritten_is_named(tiny, tmp_path):
+    def edit(f):
+        f.attrs["config"] = json.dumps(json.loads(f.attrs["config"]), indent=1)
+
+    message = _damaged(tiny, tmp_path, edit)
+    assert "its `config` attribute is '{\\n" in message and "edited after writing" in message
+    (args,) = _suggested_commands(message)
+    assert (args.problem, args.size, args.seed) == ("ks", "tiny", 0)
+
+
+@pytest.mark.parametrize("name", ["train", "extrapolation"])
+def test_trajectories_rewritten_through_h5py_are_named(tiny, tmp_path, name):
+    """HDF5 recomputes the checksums of a rewritten array; its digest is the file's own."""
+    def edit(f):
+        values = f[name]["trajectories"][...]
+        values[0, 3] *= 1.001
+        _rewrite(f, name, "trajectories", values)
+
+    message = _damaged(tiny, tmp_path, edit)
+    assert (f"{name}/trajectories is not what the file was written with (its digest differs: "
+            "edited after writing)") in message
+    (args,) = _suggested_commands(message)
+    assert (args.problem, args.size, args.seed) == ("ks", "tiny", 0)
+
+
+def test_digests_missing_from_a_current_file_are_named(tiny, tmp_path):
+    def edit(f):
+        del f.attrs["digests"]
+
+    assert "has no readable `digests` attribute" in _damaged(tiny, tmp_path, edit)
+
+
+def test_a_file_without_digests_loads_with_a_one_line_notice(tiny, tmp_path):
+    old = tmp_path / "v2.h5"
+    shutil.copy(tiny, old)
+    with h5py.File(old, "a") as f:
+        f.attrs["format_version"] = 2
+        del f.attrs["digests"]
+    with pytest.warns(UserWarning) as caught:
+        ds = datamod.load(old)
+    (warning,) = caught
+    message = str(warning.message)
+    assert "\n" not in message and "predates content digests (format version 2)" in message
+    assert _suggested_commands(message)[0].out == old
+    np.testing.assert_array_equal(ds.splits["train"].trajectories,
+                                  datamod.load(tiny).splits["train"].trajectories)
 
 
 def test_a_missing_file_suggests_a_command_that_writes_it(tmp_path):
