@@ -322,10 +322,9 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
 def train_cell(cfg: PinnConfig, run_dir: str | Path, plot: bool = True) -> dict:
     """A study's cell: :func:`train_run` in ``run_dir``, continuing the run there if it holds
     one (an interrupted study resumes each cell from its checkpoint)."""
-    run_dir = Path(run_dir)
-    held = any((run_dir / name).exists()
-               for name in (engine.CONFIG, engine.CHECKPOINT, engine.RESULT))
-    return train_run(cfg, run_dir, resume=held, progress=False, plot=plot)
+    cfg.validate()
+    run = PinnRun(cfg, run_dir, plots=plot)
+    return engine.run(run, resume=engine.RunDir(run).holds(), progress=False)
 
 
 # ----------------------------------------------------------------------------- plots
