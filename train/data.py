@@ -104,12 +104,15 @@ def generate(
 
 
 def _scene_config(problem: Problem, size: str) -> dict:
-    """What the trajectories depend on beyond the seed, stored with them as metadata."""
+    """What the trajectories depend on beyond the seed, stored with them as metadata (the
+    scene's keys where they differ from the problem's defaults)."""
+    scene = {k: v for k, v in problem.scene.items() if v != problem.SCENE[k]}
     return {
         "splits": {k: list(v) for k, v in problem.splits.items()},
         "warmup_frames": problem.warmup_frames,
         "substeps": problem.substeps,
         "sizes": problem.sizes[size],
+        **({"scene": scene} if scene else {}),
     }
 
 
@@ -268,6 +271,8 @@ def _attribute(f: h5py.File, key: str, path: Path, fix: str, kind: type) -> obje
 
 def _made_with(config: object) -> tuple[str, str] | None:
     """The (problem, size) whose configuration ``config`` is in this version, if any."""
+    if isinstance(config, dict):  # any scene: the problem checks it
+        config = {k: v for k, v in config.items() if k != "scene"}
     for problem in PROBLEMS.values():
         for size in problem.sizes:
             if config == _scene_config(problem, size):
@@ -333,7 +338,7 @@ def _metadata(f: h5py.File, path: Path) -> tuple[int, Problem, str, int, dict]:
             f"{path} was made with another configuration of the {name!r} problem than this "
             f"version's; {fix}"
         )
-    return int(version), problem, size, seed, config
+    return int(version), get_problem(name, config.get("scene")), size, seed, config
 
 
 def _check_split(
