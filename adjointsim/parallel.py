@@ -22,6 +22,7 @@ it, so that threads never outnumber cores:
 
 from __future__ import annotations
 
+import operator
 import os
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -58,9 +59,17 @@ def available_cores() -> int:
 
 
 def _check(n: object, what: str) -> int:
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"{what} must be a whole number of threads of at least 1, not {n!r}")
-    return n
+    """``n`` as an int if it is an integral number (a NumPy integer too) of at least 1; a
+    bool or a float (even 2.0) is refused: it is a count of threads, not a measure."""
+    try:
+        count = None if isinstance(n, bool) else operator.index(n)
+    except TypeError:
+        count = None
+    if count is None or count < 1:
+        kind = "" if count is not None else f" (a {type(n).__name__})"
+        raise ValueError(f"{what} must be a whole number of threads of at least 1, not "
+                         f"{n!r}{kind}")
+    return count
 
 
 def threads() -> int:
@@ -80,7 +89,8 @@ def threads() -> int:
 
 
 def set_threads(n: int | None) -> None:
-    """Use ``n`` threads in the solvers from now on (None: back to the default)."""
+    """Use ``n`` threads in the solvers from now on (None: back to the default); any integral
+    number (``np.int64(2)`` too), not a bool or a float."""
     global _chosen
     _chosen = None if n is None else _check(n, "threads")
 

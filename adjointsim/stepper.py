@@ -343,19 +343,22 @@ class Stepper:
         return out
 
     def _real_params(self, params: Any) -> np.ndarray:
-        """``params`` as float64, refusing complex values, which a cast would silently drop the
-        imaginary part of (the complex-step checks pass theirs to the fast path instead)."""
+        """``params`` as float64, refusing what is not a real number: text, booleans, and
+        complex values, which a cast would silently drop the imaginary part of (the
+        complex-step checks pass theirs to the fast path instead). The error names the
+        solver and each parameter refused."""
         values = np.asarray(params)
-        if values.dtype.kind == "c":
-            bad = ", ".join(
-                f"{k} = {v!r}" for k, v in zip(self.param_names, np.ravel(values).tolist())
-                if v.imag
-            ) or f"values of dtype {values.dtype}"
-            raise TypeError(
-                f"{self.name}: parameters must be real numbers, got {bad}; "
-                "pass the real part if that is what you mean"
-            )
-        return values.astype(np.float64, copy=False)
+        if values.dtype.kind in "iuf":
+            return values.astype(np.float64, copy=False)
+        items = np.ravel(np.asarray(params, dtype=object)).tolist()
+        bad = ", ".join(
+            f"{k} = {v!r}" for k, v in zip(self.param_names, items)
+            if isinstance(v, bool)
+            or (not isinstance(v, numbers.Real) and not (isinstance(v, complex) and not v.imag))
+        ) or f"values of dtype {values.dtype}"
+        hint = ("pass the real part if that is what you mean" if values.dtype.kind == "c"
+                else f"give a number for each of {list(self.param_names)}")
+        raise TypeError(f"{self.name}: parameters must be real numbers, got {bad}; {hint}")
 
     def check_state(self, u: np.ndarray, what: str = "u0") -> np.ndarray:
         """``u`` as a C-contiguous float32 or float64 state of shape (B, C, *grid), after

@@ -129,12 +129,19 @@ def test_the_environment_variable_and_the_default(monkeypatch):
         assert parallel.threads() == parallel.available_cores()
 
 
-@pytest.mark.parametrize("bad", [0, -1, True, 2.0, "2"])
+@pytest.mark.parametrize("bad", [0, -1, True, np.True_, 2.0, np.float64(2.0), "2",
+                                 np.int64(0)])
 def test_set_threads_refuses_what_is_not_a_count(bad):
     before = parallel.threads()
-    with pytest.raises(ValueError, match="whole number of threads"):
+    with pytest.raises(ValueError, match="whole number of threads of at least 1, not "):
         parallel.set_threads(bad)
     assert parallel.threads() == before
+
+
+@pytest.mark.parametrize("count", [np.int64(2), np.uint8(2), np.int32(2), 2])
+def test_set_threads_takes_any_integral_number(count):
+    with parallel.using_threads(count):
+        assert parallel.threads() == 2 and type(parallel.threads()) is int
 
 
 def test_using_threads_restores_the_setting_after_an_error_too(monkeypatch):

@@ -447,6 +447,18 @@ def test_complex_parameters_are_refused_where_a_cast_would_drop_their_imaginary_
     assert same_bits(z.real.copy(), s.rollout(u, 2))
 
 
+@pytest.mark.parametrize("params", [{"nu": "abc"}, ["abc"], np.array(["0.1"]), {"nu": None},
+                                    {"nu": True}])
+def test_a_parameter_that_is_not_a_number_is_named_with_the_solver(params):
+    s = FTCS(n=16)
+    u = s.random_state(np.random.default_rng(7), 2)
+    value = params["nu"] if isinstance(params, dict) else str(params[0])
+    with pytest.raises(TypeError) as info:
+        s.rollout(u, 2, params=params)
+    assert str(info.value) == (f"diffusion1d-ftcs: parameters must be real numbers, got "
+                               f"nu = {value!r}; give a number for each of ['nu']")
+
+
 def test_a_trajectory_of_the_wrong_shape_or_dtype_says_what_is_expected():
     s = FTCS(n=16)
     u = s.random_state(np.random.default_rng(8), 2)
