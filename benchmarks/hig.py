@@ -26,7 +26,7 @@ from torch.func import functional_call, jacrev
 
 from adjointsim.solvers.oscillators import Oscillators
 from adjointsim.train.hig import HalfInverseGradients
-from adjointsim.train.hig_problems import make_problem
+from adjointsim.train.higs import make_problem
 
 
 def torch_oscillators(stepper: Oscillators, u0: torch.Tensor, controls: torch.Tensor,

@@ -6,7 +6,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import THREADS_HELP, at_least, config_flags, overrides, run_options, write_result
+from .options import (
+    THREADS_HELP,
+    at_least,
+    config_flags,
+    overrides,
+    run_options,
+    scene_of,
+    scene_option,
+    write_result,
+)
 
 _HELPS = {
     "optimizer": "half-inverse gradients, Gauss-Newton or Adam, each with the problem's batch "
@@ -17,15 +26,16 @@ _HELPS = {
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    from adjointsim.train.hig_problems import BUDGETS, PROBLEMS, HigConfig
+    from adjointsim.train.hig_problems import PROBLEMS, HigConfig
 
-    p.add_argument("problem", choices=PROBLEMS, help="the problem (config key problem)")
+    p.add_argument("problem", choices=PROBLEMS.names(), help="the problem (config key problem)")
     run_options(p, "runs/hig-PROBLEM-OPTIMIZER-seedSEED")
     # budget and max_updates accept None (the problem's budget, no limit), so their flags are
     # spelled here rather than by config_flags
-    config_flags(p, HigConfig, HigConfig.ACCEPTED, skip=("problem", "budget", "max_updates"),
-                 helps=_HELPS)
-    defaults = ", ".join(f"{k} {v:g}" for k, v in BUDGETS.items())
+    config_flags(p, HigConfig, HigConfig.ACCEPTED,
+                 skip=("problem", "budget", "max_updates", "scene"), helps=_HELPS)
+    scene_option(p)
+    defaults = ", ".join(f"{name} {kind.BUDGET:g}" for name, kind in PROBLEMS.items())
     p.add_argument("--time-budget", dest="budget", type=float, default=None, metavar="SECONDS",
                    help="seconds of update time, > 0 (config key budget; default per problem: "
                    f"{defaults})")
@@ -35,16 +45,12 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint, run_errors
     from adjointsim.train.hig_problems import HigConfig, train_run
 
-    cfg = HigConfig.load(args.config, **overrides(args, HigConfig))
+    cfg = HigConfig.load(args.config, **{**overrides(args, HigConfig), "scene": scene_of(args)})
     out = args.out or Path("runs") / f"hig-{cfg.problem}-{cfg.optimizer}-seed{cfg.seed}"
-    if args.resume:
-        require_checkpoint(out)
-    with run_errors(out):
-        result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
-                           progress=args.progress)
+    result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
+                       progress=args.progress)
     write_result(args, result)
     loss = result["test_loss"]
     print(f"{cfg.problem}/{cfg.optimizer} seed {cfg.seed}: {result['updates']} updates in "

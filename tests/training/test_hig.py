@@ -1,9 +1,11 @@
 """Half-inverse gradients: the update against a dense NumPy computation, the Jacobian against
-finite differences, error messages, the problems, runs (history, resume, refusal) and the
-study."""
+finite differences, error messages, the problems and their scenes, runs (history, resume,
+extension, refusal) and the study."""
 
 import json
 import math
+import signal
+import time
 
 import numpy as np
 import pytest
@@ -12,14 +14,12 @@ import torch
 from adjointsim.errors import RunExists
 from adjointsim.run import read_history
 from adjointsim.solvers.oscillators import Oscillators
+from adjointsim.train import hig_problems
+from adjointsim.train.checkpoint import load_checkpoint
 from adjointsim.train.hig import HalfInverseGradients, SolverPhysics, TorchPhysics
-from adjointsim.train.hig_problems import (
-    HigConfig,
-    five_point_laplacian,
-    make_problem,
-    phiflow_noise,
-    train_run,
-)
+from adjointsim.train.hig_problems import HigConfig, train_run
+from adjointsim.train.higs import PROBLEMS, make_problem
+from adjointsim.train.higs.poisson import five_point_laplacian, phiflow_noise
 
 STEPS = 6
 
@@ -268,17 +268,34 @@ def test_quantum_targets_are_normalised_and_the_loss_is_an_infidelity():
 
 
 def _interrupt_step(monkeypatch, after: int) -> None:
-    """Ctrl-C inside the update after ``after`` timed ones (the warm-up is the first call)."""
+    """Ctrl-C (SIGINT) inside the update after ``after`` timed ones (the warm-up is the first
+    call): as a user's, it stops the run once that update is done."""
     calls = {"n": 0}
-    real_step = HalfInverseGradients.step
+    real_step = hig_problems.step
 
-    def interrupted(self, *a):
+    def interrupted(*a):
         calls["n"] += 1
         if calls["n"] == after + 2:
-            raise KeyboardInterrupt
-        return real_step(self, *a)
+            signal.raise_signal(signal.SIGINT)
+        return real_step(*a)
 
-    monkeypatch.setattr(HalfInverseGradients, "step", interrupted)
+    monkeypatch.setattr(hig_problems, "step", interrupted)
+
+
+def _fake_clock(monkeypatch) -> None:
+    """Every update takes 5 ms of CPU time: the evaluation marks, which follow the measured
+    time, become the same from run to run."""
+    clock = iter(range(1, 10**6))
+    monkeypatch.setattr(time, "process_time", lambda: 0.0025 * next(clock))
+
+
+def _model(out):
+    return load_checkpoint(out / "checkpoint.pt", ("state",))["state"]["model"]
+
+
+def _same_model(a, b) -> bool:
+    ma, mb = _model(a), _model(b)
+    return ma.keys() == mb.keys() and all(torch.equal(ma[k], mb[k]) for k in ma)
 
 
 def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch):
@@ -300,9 +317,53 @@ def test_run_writes_history_refuses_overwrite_and_resumes(tmp_path, monkeypatch)
         train_run(cfg, tmp_path, progress=False)
     assert train_run(cfg, tmp_path, resume=True, progress=False) == result
     other = HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=5)
-    with pytest.raises(RunExists, match="differs in max_updates"):
+    with pytest.raises(RunExists, match="max_updates = 6; pass as much or more"):
+        train_run(other, tmp_path, resume=True, progress=False)
+    other = HigConfig("chain", "hig", seed=1, budget=1e6, size="tiny", max_updates=6)
+    with pytest.raises(RunExists, match="differs in seed"):
         train_run(other, tmp_path, resume=True, progress=False)
     assert json.loads((tmp_path / "result.json").read_text())["optimizer"] == "hig"
+
+
+@pytest.mark.parametrize(("problem", "optimizer"), [("chain", "hig"), ("poisson", "adam")])
+def test_interrupted_run_resumes_to_the_same_model(tmp_path, monkeypatch, problem, optimizer):
+    """The same model, result and history (the Poisson fields drawn ahead are part of the
+    checkpoint)."""
+    _fake_clock(monkeypatch)
+    cfg = HigConfig(problem, optimizer, seed=0, budget=1e6, size="tiny", max_updates=5)
+    whole = train_run(cfg, tmp_path / "a", progress=False, plot=False)
+    with monkeypatch.context() as m:
+        _interrupt_step(m, after=3)
+        with pytest.raises(KeyboardInterrupt):
+            train_run(cfg, tmp_path / "b", progress=False, plot=False)
+    resumed = train_run(cfg, tmp_path / "b", resume=True, progress=False, plot=False)
+    assert resumed["updates"] == whole["updates"] == 5
+    assert resumed["test_loss"] == whole["test_loss"]
+    assert _same_model(tmp_path / "a", tmp_path / "b")
+    assert _history(tmp_path / "a") == _history(tmp_path / "b")
+
+
+def _history(out) -> str:
+    return (out / "history.csv").read_text()
+
+
+def test_finished_run_continues_to_more_updates(tmp_path, monkeypatch):
+    """A run finished at max_updates 3, continued to 6, is the run of 6: its final
+    evaluation was no step of the training."""
+    _fake_clock(monkeypatch)
+
+    def cfg(n):
+        return HigConfig("chain", "hig", seed=0, budget=1e6, size="tiny", max_updates=n)
+
+    whole = train_run(cfg(6), tmp_path / "a", progress=False, plot=False)
+    train_run(cfg(3), tmp_path / "b", progress=False, plot=False)
+    with pytest.raises(RunExists, match="continue it to more with --resume"):
+        train_run(cfg(6), tmp_path / "b", progress=False, plot=False)
+    longer = train_run(cfg(6), tmp_path / "b", resume=True, progress=False, plot=False)
+    assert longer["updates"] == 6 and longer["test_loss"] == whole["test_loss"]
+    assert _same_model(tmp_path / "a", tmp_path / "b")
+    assert _history(tmp_path / "a") == _history(tmp_path / "b")  # the final row at 3 is gone
+    assert longer["wall_s"] == whole["wall_s"]
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
@@ -313,7 +374,7 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="checkpoint.pt is not a readable checkpoint"):
         train_run(cfg, tmp_path, resume=True, progress=False)
     (tmp_path / "config.json").unlink()  # not this run's files: refused before reading them
-    with pytest.raises(RunExists, match="holds other files and no run's config.json"):
+    with pytest.raises(RunExists, match="no readable config.json"):
         train_run(cfg, tmp_path, resume=True, progress=False)
 
 
@@ -352,7 +413,7 @@ def test_cli_resume_without_a_checkpoint_is_one_line(tmp_path, capsys):
     out = tmp_path / "empty"
     out.mkdir()
     assert main(["hig", "chain", "--resume", "--out", str(out), "--no-progress"]) == 2
-    assert "holds no checkpoint" in _one_line(capsys)
+    assert "holds no run to continue" in _one_line(capsys)
 
 
 def test_cli_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
@@ -362,7 +423,7 @@ def test_cli_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
     args = ["hig", "chain", "--size", "tiny", "--out", str(out), "--no-progress"]
     assert main([*args, "--max-updates", "3"]) == 0
     assert main([*args, "--max-updates", "2"]) == 2  # another run is there: refused
-    assert "finished run" in _one_line(capsys)
+    assert "holds a run of max_updates = 3" in _one_line(capsys)
     assert main([*args, "--max-updates", "2", "--overwrite"]) == 0
     result = json.loads((out / "result.json").read_text())
     assert result["updates"] == 2 and result["max_updates"] == 2
@@ -379,7 +440,8 @@ def test_cli_config_file_sets_keys_and_names_a_wrong_typed_one(tmp_path, capsys)
                  "--no-progress"]) == 0
     config = json.loads((out / "config.json").read_text())
     assert config == {"problem": "chain", "optimizer": "adam", "seed": 0, "budget": 50.0,
-                      "size": "tiny", "max_updates": 1, "threads": 1}  # the flag overrides the file
+                      "size": "tiny", "max_updates": 1, "threads": 1,  # the flag overrides
+                      "scene": PROBLEMS.get("chain").SCENE}  # the file; the scene recorded
     bad = tmp_path / "bad.toml"
     bad.write_text('max_updates = "three"\n')
     assert main(["hig", "chain", "--config", str(bad), "--out", str(tmp_path / "other")]) == 2
@@ -394,9 +456,10 @@ def test_cli_help_lists_the_choices(capsys):
         main(["hig", "--help"])
     assert stop.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    for part in ("{oscillators,quantum,poisson,chain}", "{adam,gn,hig}", "{tiny,quick,full}",
+    assert set(PROBLEMS.names()) == {"oscillators", "quantum", "poisson", "chain"}
+    for part in ("{" + ",".join(PROBLEMS.names()) + "}", "{adam,gn,hig}", "{tiny,quick,full}",
                  "--time-budget", "--max-updates", "--resume", "--overwrite", "--config",
-                 "--seed", "--threads", "--no-progress", "chain 100"):
+                 "--seed", "--threads", "--no-progress", "chain 100", "--scene KEY=VALUE"):
         assert part in text, part
 
 
@@ -408,7 +471,7 @@ def test_cli_ctrl_c_leaves_a_checkpoint_to_resume(tmp_path, capsys, monkeypatch)
     args = ["hig", "chain", "--size", "tiny", "--max-updates", "3", "--out", str(out),
             "--no-progress"]
     assert main(args) == 130
-    assert f"continue with --resume --out {out}" in _one_line(capsys)
+    assert f"continue with the same command and --resume (--out {out})" in _one_line(capsys)
     assert (out / "checkpoint.pt").exists() and not (out / "result.json").exists()
     assert main([*args, "--resume"]) == 0
     assert json.loads((out / "result.json").read_text())["updates"] == 3
@@ -482,16 +545,47 @@ def test_a_checkpoint_of_another_layout_is_one_line(tmp_path, capsys):
     """An unfinished run saved with other layer names (an older version's network) is refused
     with what to do, not a traceback."""
     from adjointsim.cli import main
-    from adjointsim.train.checkpoint import load_checkpoint, save_checkpoint
+    from adjointsim.train.checkpoint import save_checkpoint
 
     out = tmp_path / "r"
     argv = ["hig", "poisson", "--max-updates", "2", "--out", str(out), "--no-progress"]
     assert main(argv) == 0
     (out / "result.json").unlink()
-    ckpt = load_checkpoint(out / "checkpoint.pt", ("model",))
-    ckpt["model"] = {f"old.{k}": v for k, v in ckpt["model"].items()}
+    ckpt = load_checkpoint(out / "checkpoint.pt", ("state",))
+    ckpt["state"]["model"] = {f"old.{k}": v for k, v in ckpt["state"]["model"].items()}
     save_checkpoint(ckpt, out / "checkpoint.pt")
     capsys.readouterr()
     assert main([*argv, "--resume"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--overwrite" in err
+
+
+def test_scene_keys_change_the_solver_and_are_recorded(tmp_path, capsys):
+    """--scene over the problem's scene (the chain's Δt = 0.5): recorded whole in config.json,
+    a different run; a key the solver does not take, or a value it refuses, is one line."""
+    from adjointsim.cli import main
+
+    args = ["hig", "chain", "--size", "tiny", "--max-updates", "2", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert main([*args, "--scene", "dt=0.25", "--out", str(tmp_path / "b")]) == 0
+    config = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert config["scene"] == {**PROBLEMS.get("chain").SCENE, "dt": 0.25}
+    results = [json.loads((tmp_path / d / "result.json").read_text()) for d in "ab"]
+    assert results[0]["test_loss"] != results[1]["test_loss"]
+    assert make_problem("chain", 0, "tiny", {"dt": 0.25}).solver.dt == 0.25
+    capsys.readouterr()
+    for scene, message in [("dt=-1", "'scene': oscillators-rk4: dt must be a finite number > 0"),
+                           ("mass=2", "scene key 'mass': oscillators-rk4 takes n, dt,"),
+                           ("n=2.5", "n must be an integer")]:
+        assert main([*args, "--scene", scene, "--out", str(tmp_path / "c")]) == 2
+        assert message in _one_line(capsys)
+    assert not (tmp_path / "c").exists()
+    with pytest.raises(ValueError, match="scene key 'bc' is fixed to 'dirichlet'"):
+        HigConfig("poisson", scene={"bc": "periodic"}).validate()
+
+
+def test_oscillators_scene_sizes_the_data_and_network():
+    p = make_problem("oscillators", 0, "tiny", {"n": 3})
+    x, _, _ = p.test
+    assert x.shape == (256, 6) and p.model()(x).shape == (256, 96)
+    assert p.test_loss(p.model()) > 0

@@ -1,11 +1,11 @@
 """The ``hig`` study: Adam, Gauss–Newton and half-inverse gradients on every HIG problem, over
 seeds, compared at the same wall-clock of updates (``adjointsim study hig [--quick]``).
 
-Each cell is one ``adjointsim hig`` run (:func:`adjointsim.train.hig_problems.train_run`) in
-its own directory; its row holds the final test loss, the summed update time ``wall_s`` and the test
-loss at fixed wall-clock ``marks``. The report tables the median over seeds (and the range) at
-each mark, says per problem whether HIG ends below Adam and GN, and draws the loss-versus-time
-curves, one panel per problem.
+Each cell is one ``adjointsim hig`` run (:class:`adjointsim.train.hig_problems.HigRun`) in
+its own directory (continued where an interrupted study left it); its row holds the final test
+loss, the summed update time ``wall_s`` and the test loss at fixed wall-clock ``marks``. The
+report tables the median over seeds (and the range) at each mark, says per problem whether HIG
+ends below Adam and GN, and draws the loss-versus-time curves, one panel per problem.
 """
 
 from __future__ import annotations
@@ -14,26 +14,29 @@ import math
 from pathlib import Path
 from statistics import median
 
+from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
 
-from ..hig_problems import OPTIMIZERS, PROBLEMS, HigConfig, loss_at, plot_test_losses
-from ..hig_problems import train_run as _train_run
-from ..threads import use_threads
+from ..hig_problems import HigConfig, HigRun, loss_at, plot_test_losses
+from ..higs import OPTIMIZERS
+
+#: the problems of the quick and full sizes, in the paper's order
+PAPER = ("oscillators", "quantum", "poisson", "chain")
 
 #: per size: problems, seeds, time budget per problem (s), wall-clock marks of the table (s)
 SIZES = {
     "tiny": {"problems": ("chain", "oscillators"), "seeds": 1,
              "budget": {"chain": 0.2, "oscillators": 0.2}, "marks": (0.1, 0.2), "data": "tiny"},
-    "quick": {"problems": PROBLEMS, "seeds": 3,
+    "quick": {"problems": PAPER, "seeds": 3,
               "budget": {"oscillators": 20.0, "quantum": 20.0, "poisson": 20.0, "chain": 30.0},
               "marks": (1.0, 2.0, 5.0, 10.0, 20.0, 30.0), "data": "full"},
     # the two problems the quick size does not reproduce, at 15x its budget
     "long": {"problems": ("quantum", "poisson"), "seeds": 3,
              "budget": {"quantum": 300.0, "poisson": 300.0},
              "marks": (1.0, 10.0, 30.0, 100.0, 300.0), "data": "full"},
-    "full": {"problems": PROBLEMS, "seeds": 3,
+    "full": {"problems": PAPER, "seeds": 3,
              "budget": {"oscillators": 600.0, "quantum": 600.0, "poisson": 600.0,
                         "chain": 100.0},
              "marks": (1.0, 10.0, 100.0, 300.0, 600.0), "data": "full"},
@@ -53,10 +56,11 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
-    use_threads(1)
     cfg = HigConfig(problem=cell["problem"], optimizer=cell["optimizer"], seed=cell["seed"],
                     budget=cell["budget"], size=cell["data"])
-    result = _train_run(cfg, Path(run_dir), resume=True, progress=False, plot=False)
+    cfg.validate()
+    run = HigRun(cfg, Path(run_dir), plots=False)
+    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=False)
     history = read_history(Path(run_dir) / "history.csv")
     return {
         "wall_s": result["wall_s"],
@@ -65,6 +69,11 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
         "diverged": result["diverged"],
         "loss_at": {str(m): loss_at(history, m) for m in cell["marks"]},
     }
+
+
+def _problems(rows: list[dict]) -> list[str]:
+    """The problems of ``rows``, in the order of the study's cells."""
+    return list(dict.fromkeys(r["problem"] for r in rows))
 
 
 def _fmt(values: list[float]) -> str:
@@ -86,7 +95,7 @@ def _final(row: dict) -> float:
 def table(rows: list[dict]) -> str:
     """Median test loss over seeds [min, max] at each wall-clock mark and at the end."""
     lines = []
-    for problem in PROBLEMS:
+    for problem in _problems(rows):
         mine = [r for r in rows if r["problem"] == problem]
         if not mine:
             continue
@@ -141,7 +150,7 @@ def plot(rows: list[dict], out: Path, path: Path) -> None:
     """Test loss against wall-clock, one panel per problem, one curve per optimizer and seed."""
     plt = pyplot()
 
-    problems = [p for p in PROBLEMS if any(r["problem"] == p for r in rows)]
+    problems = _problems(rows)
     fig, axes = plt.subplots(1, len(problems), figsize=(4.2 * len(problems), 3.4), squeeze=False)
     colors = {"adam": "tab:blue", "gn": "tab:orange", "hig": "tab:green"}
     for ax, problem in zip(axes[0], problems):
