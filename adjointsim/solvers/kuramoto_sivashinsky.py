@@ -8,10 +8,9 @@ Discrete:    û_t = L û − ½ i k · DFT(u²), L = α k² − β k⁴; ``subst
              rule to the nonlinear term.
 Adjoint:     reversed ETDRK stages (see :mod:`.spectral1d`); ᾱ, β̄ from the coefficient
              cotangents and d(coefficient)/dL · (k², −k⁴).
-Presets:     :meth:`KuramotoSivashinskyETDRK.list_et_al` (N = 48, length 2π·8·factor, ETDRK2 with
-             Δt = 0.5, two sub-steps per frame; ``coarse=True``: ETD1, same grid and Δt) and
-             :meth:`KuramotoSivashinskyETDRK.kassam_trefethen` (N = 128, length 32π, h = 1/4,
-             ETDRK4; initial state from :meth:`kassam_trefethen_state`).
+Presets:     :meth:`KuramotoSivashinskyETDRK.kassam_trefethen` (N = 128, length 32π, h = 1/4,
+             ETDRK4; initial state from :meth:`kassam_trefethen_state`). List et al.'s scenes
+             are the ``ks`` neural-stepper problem's (``adjointsim.train.steppers.ks``).
 """
 
 from __future__ import annotations
@@ -60,19 +59,6 @@ class KuramotoSivashinskyETDRK(ETDRKScene1D):
             why="the coefficient β of u_xxxx; otherwise the short waves grow like exp(α k² Δt) "
             "without bound",
         )
-
-    @classmethod
-    def list_et_al(cls, factor: float = 1.0, coarse: bool = False) -> KuramotoSivashinskyETDRK:
-        """List et al.'s KS: N = 48, length 2π·8·factor, frames 1.0 apart made of two Δt = 0.5
-        steps of ETDRK2 (reference) or, with ``coarse``, of ETD1 (the correction solver).
-
-        Left to itself the coarse solver is unstable on the chaotic attractor: exponential
-        Euler treats advection explicitly, and at Δt = 0.5 the modes near |k| ≈ 1 grow. From
-        attractor states it blows up after a median of 16–32 frames (factor 1.4 → 0.85); in the
-        correction setup the network keeps it on track. ``substeps=4`` would make it stable."""
-        factor = validate.number("ks1d list_et_al", "factor", factor, gt=0)
-        coarse = validate.flag("ks1d list_et_al", "coarse", coarse)
-        return KS[1 if coarse else 2](n=48, length=2 * np.pi * 8 * factor, dt=1.0, substeps=2)
 
     @classmethod
     def kassam_trefethen(cls) -> KuramotoSivashinskyETDRK:

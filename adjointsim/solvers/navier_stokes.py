@@ -411,27 +411,6 @@ class NavierStokes2D(Stepper):
         return cls(n=16, nu=0.1, dt=0.05, forcing_wavenumber=2, forcing_amplitude=0.5, drag=0.5)
 
     @classmethod
-    def kolmogorov_list_et_al(
-        cls, re: float = 1000.0, resolution: str = "reference"
-    ) -> NavierStokes2D:
-        """List et al.'s Kolmogorov flow: forcing sin(6y) in x-momentum, ν = 1/Re, no drag.
-
-        ``resolution="reference"``: 128², Δt = 0.005; ``"coarse"``: 32², Δt = 0.02 (the
-        correction solver, 4x coarser in space and time). The ETDRK order is the class's, ETDRK4
-        when called on the base class. Avoid ETDRK1/2 on the coarse grid: the developed flow
-        reaches Courant numbers ≈ 0.9 there, and one- and two-stage schemes do not contain the
-        imaginary axis, so those runs blow up within a few thousand steps (ETDRK3/4 ran 10⁴
-        steps at Re 300–1000).
-        """
-        grids = {"reference": (128, 0.005), "coarse": (32, 0.02)}
-        where = "ns2d kolmogorov_list_et_al"
-        n, dt = grids[validate.choice(where, "resolution", resolution, tuple(grids))]
-        re = validate.number(where, "re", re, gt=0, why="the Reynolds number, ν = 1/re")
-        return cls._of_order(4)(
-            n=n, nu=1.0 / re, dt=dt, forcing_wavenumber=6, forcing_amplitude=1.0
-        )
-
-    @classmethod
     def kolmogorov_drag(cls, re: float = 1000.0, n: int = 64, dt: float = 0.01) -> NavierStokes2D:
         """Kolmogorov flow with forcing sin(4y) in x-momentum and linear drag μ = 0.1 (Kochkov
         et al.'s setup; ETDRK4 when called on the base class)."""

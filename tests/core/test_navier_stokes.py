@@ -200,7 +200,7 @@ def test_unforced_energy_and_enstrophy_decay():
 
 def test_forced_flow_stays_within_the_energy_bound():
     # ‖ω‖ ≤ max(‖ω_0‖, ‖F‖/ν) (Poincaré) bounds every forced run with ν > 0.
-    stepper = get("ns2d-etdrk3").kolmogorov_list_et_al(re=300, resolution="coarse")
+    stepper = _kolmogorov(300, "coarse", get("ns2d-etdrk3"))
     u0 = random_smooth_field(np.random.default_rng(5), (1, 1, 32, 32), 4)
     traj = stepper.rollout(u0, 3000, keep="all")
     rms = np.sqrt(np.mean(traj**2, axis=(-3, -2, -1)))[:, 0]
@@ -212,7 +212,7 @@ def test_forced_flow_stays_within_the_energy_bound():
 @pytest.mark.parametrize("re", (300, 1000))
 @pytest.mark.parametrize(("resolution", "steps"), [("reference", 4000), ("coarse", 10000)])
 def test_kolmogorov_long_runs_stay_bounded(re, resolution, steps):
-    stepper = NavierStokes2D.kolmogorov_list_et_al(re=re, resolution=resolution)
+    stepper = _kolmogorov(re, resolution)
     u = random_smooth_field(np.random.default_rng(6), (1, 1, stepper.n, stepper.n), 4)
     snapshots = [u]
     for _ in range(steps // 100):
@@ -226,19 +226,18 @@ def test_kolmogorov_long_runs_stay_bounded(re, resolution, steps):
 
 
 # ------------------------------------------------------------------ presets, input, dtypes
+def _kolmogorov(re: float, resolution: str, cls=None):
+    """List et al.'s Kolmogorov scenes (those of the ``kolmogorov`` neural-stepper problem):
+    forcing sin(6y), ν = 1/Re; 128² at Δt = 0.005, or coarse 32² at Δt = 0.02; ETDRK4."""
+    n, dt = {"reference": (128, 0.005), "coarse": (32, 0.02)}[resolution]
+    return (cls or get("ns2d-etdrk4"))(n=n, nu=1.0 / re, dt=dt, forcing_wavenumber=6,
+                                        forcing_amplitude=1.0)
+
+
 def test_presets():
-    ref = get("ns2d-etdrk4").kolmogorov_list_et_al(re=500)
-    assert (ref.n, ref.dt, ref.forcing_wavenumber, ref.order) == (128, 0.005, 6, 4)
-    assert ref.params == {"nu": 1 / 500, "forcing": 1.0}
-    coarse = get("ns2d-etdrk2").kolmogorov_list_et_al(re=500, resolution="coarse")
-    assert (coarse.n, coarse.dt, coarse.order) == (32, 0.02, 2)
     drag = get("ns2d-etdrk2").kolmogorov_drag()
     assert drag.forcing_wavenumber == 4 and drag.params["drag"] == 0.1
-    assert NavierStokes2D.kolmogorov_list_et_al().name == "ns2d-etdrk4"
-    assert NavierStokes2D.kolmogorov_list_et_al(resolution="coarse").name == "ns2d-etdrk4"
     assert NavierStokes2D.kolmogorov_drag().name == "ns2d-etdrk4"
-    with pytest.raises(ValueError, match="resolution"):
-        NavierStokes2D.kolmogorov_list_et_al(resolution="fine")
 
 
 def test_scenes_without_forcing_or_drag_have_no_such_parameters():

@@ -41,8 +41,8 @@ def test_gradients_non_default_scenes(scene, batch):
 @pytest.mark.parametrize(
     "make",
     (
-        lambda: ks.KuramotoSivashinskyETDRK.list_et_al(),
-        lambda: ks.KuramotoSivashinskyETDRK.list_et_al(factor=1.2, coarse=True),
+        lambda: _list_et_al(),
+        lambda: _list_et_al(factor=1.2, coarse=True),
         ks.KuramotoSivashinskyETDRK.kassam_trefethen,
     ),
 )
@@ -56,12 +56,13 @@ def test_gradients_presets_short(make):
         assert r.dot_rel_err <= (1e-10 if r.wrt in ("state", "controls") else 1e-7), r
 
 
+def _list_et_al(factor: float = 1.0, coarse: bool = False):
+    """List et al.'s KS scenes (those of the ``ks`` neural-stepper problem): N = 48, length
+    2π·8·factor, frames 1.0 apart of two steps of ETDRK2, or ETD1 for the coarse solver."""
+    return ks.KS[1 if coarse else 2](n=48, length=2 * np.pi * 8 * factor, dt=1.0, substeps=2)
+
+
 def test_presets():
-    ref = ks.KuramotoSivashinskyETDRK.list_et_al(factor=0.9)
-    coarse = ks.KuramotoSivashinskyETDRK.list_et_al(coarse=True)
-    assert (ref.name, ref.grid_shape, ref.dt, ref.substeps) == ("ks1d-etdrk2", (48,), 1.0, 2)
-    assert np.isclose(ref.length, 2 * np.pi * 8 * 0.9) and not ref.dealias
-    assert coarse.name == "ks1d-etdrk1" and coarse.dt / coarse.substeps == 0.5
     kt = ks.KuramotoSivashinskyETDRK.kassam_trefethen()
     assert (kt.name, kt.grid_shape, kt.length, kt.dt) == ("ks1d-etdrk4", (128,), 32 * np.pi, 0.25)
     u0 = kt.kassam_trefethen_state()
@@ -193,7 +194,7 @@ def test_bad_input():
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "make", (ks.KuramotoSivashinskyETDRK.kassam_trefethen, ks.KuramotoSivashinskyETDRK.list_et_al)
+    "make", (ks.KuramotoSivashinskyETDRK.kassam_trefethen, _list_et_al)
 )
 def test_long_ks_run_stays_bounded(make):
     # (The coarse ETD1 preset is not: exponential Euler at Δt = 0.5 is unstable on the
@@ -210,8 +211,8 @@ def test_list_et_al_coarse_solver_alone_blows_up_on_the_attractor(factor):
     """The documented reason the KS correction setup needs its network: ETD1 at Δt = 0.5
     leaves the attractor (median 16–32 frames, all within 300), where the ETDRK2 reference
     stays bounded."""
-    ref = ks.KuramotoSivashinskyETDRK.list_et_al(factor)
-    coarse = ks.KuramotoSivashinskyETDRK.list_et_al(factor, coarse=True)
+    ref = _list_et_al(factor)
+    coarse = _list_et_al(factor, coarse=True)
     traj = ref.rollout(ref.random_state(np.random.default_rng(0), 20), 300, keep="all")
     assert np.abs(traj[200:]).max() < 5
     first = []

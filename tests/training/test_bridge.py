@@ -41,7 +41,7 @@ def test_torch_gradcheck_every_solver(name):
 
 def test_grouped_rollout_is_one_node_with_each_rows_own_scene():
     ks = adjointsim.get("ks1d-etdrk1")
-    small, large = ks.list_et_al(0.9, coarse=True), ks.list_et_al(1.3, coarse=True)
+    small, large = (ks(n=48, length=2 * np.pi * 8 * f, dt=1.0, substeps=2) for f in (0.9, 1.3))
     rng = np.random.default_rng(1)
     u0 = torch.from_numpy(small.random_state(rng, 5)).requires_grad_()
     groups = [(small, np.array([0, 3])), (large, np.array([1, 2, 4]))]
