@@ -22,11 +22,11 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import adjointsim  # noqa: E402
 from adjointsim.nets import ResNet, parameter_count  # noqa: E402
 from adjointsim.spectral.etdrk import etdrk_coefficients  # noqa: E402
 from adjointsim.train import bridge  # noqa: E402
 from adjointsim.train.model import NeuralStepper  # noqa: E402
+from adjointsim.train.problems import get_problem  # noqa: E402
 from adjointsim.train.unroll import unrolled_loss  # noqa: E402
 
 
@@ -59,7 +59,8 @@ class TorchCorrection(NeuralStepper):
         super().__init__(net, "prediction")
         self.setup, self.torch_solver = "correction", torch_solver
 
-    def forward(self, u, params, conditions):
+    def forward(self, u, params, conditions, flow=None):
+        # timed under WIG only, whose flow stops no gradient
         return self.torch_solver(u) + self.torch_solver.dt * self._f(u, conditions)
 
 
@@ -109,9 +110,10 @@ def main() -> None:
     torch.set_num_threads(1)
     dtype = getattr(torch, args.dtype)
     m, batch = 4, 16
-    stepper = adjointsim.get("ks1d-etdrk1").list_et_al(1.0, coarse=True)
+    ks = get_problem("ks")  # List et al.'s scenes
+    stepper = ks.coarse(1.0)
     rng = np.random.default_rng(0)
-    ref = adjointsim.get("ks1d-etdrk2").list_et_al(1.0)
+    ref = ks.reference(1.0)
     u = ref.rollout(ref.random_state(rng, batch) * 0.5, 200, keep="all")[-m - 1:]
     frames = torch.from_numpy(np.swapaxes(u, 0, 1).copy()).to(dtype)
     params = torch.ones(batch, dtype=torch.float64)
@@ -128,15 +130,15 @@ def main() -> None:
     # Training batches mix the six domain sizes: one grouped solver call per step all the same.
     sizes = torch.tensor([(0.9, 0.95, 1.0, 1.1, 1.2, 1.3)[i % 6] for i in range(batch)],
                          dtype=torch.float64)
-    mixed = NeuralStepper(net(), "correction",
-                          lambda p: adjointsim.get("ks1d-etdrk1").list_et_al(p, coarse=True))
+    mixed = NeuralStepper(net(), "correction", ks.coarse)
     x = frames[:, 0].clone().requires_grad_()
     t = interleaved_medians({
         "wig": training_step(ours, frames, params, cond, "WIG"),
         "torch": training_step(TorchCorrection(net(), torch_solver), frames, params, cond, "WIG"),
         "mixed": training_step(mixed, frames, sizes, cond, "WIG"),
         "nog": training_step(ours, frames, params, cond, "NOG"),
-        "one": training_step(ours, frames[:, :2].contiguous(), params, cond, "ONE"),
+        # ONE's update: one step, flow R (unroll.schedule)
+        "one": training_step(ours, frames[:, :2].contiguous(), params, cond, "R"),
         "solver": solver_step(lambda y: bridge.rollout(stepper, y, 1), x, m),
         "solver_torch": solver_step(torch_solver, x, m),
     }, args.repeats)
