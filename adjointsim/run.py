@@ -306,6 +306,8 @@ def run_errors(out: Path) -> Iterator[None]:
     cannot be written, naming it."""
     try:
         yield
+    except Interrupted:  # it says already what to do (an ensemble: where its members are)
+        raise
     except KeyboardInterrupt:
         if not (out / "checkpoint.pt").exists():
             raise Interrupted("stopped before the first checkpoint: nothing to resume, run "

@@ -123,7 +123,7 @@ def torch_loss(task, net, x0, step):
 
 
 def setup(name, batch, dtype=torch.float64):
-    task = control.get_task(name, control.TASKS[name].levels[-1])
+    task = control.get_task(name, control.TASKS.get(name).levels[-1])
     torch.manual_seed(0)
     net = task.net().to(dtype)
     for m in net.modules():  # a trained-looking controller, not the zero-initialised one

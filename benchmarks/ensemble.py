@@ -29,7 +29,7 @@ from adjointsim.files import pyplot, save_figure, write_json, write_text
 from adjointsim.train import control as ctl
 from adjointsim.train import data as datamod
 from adjointsim.train.checkpoint import load_checkpoint
-from adjointsim.train.ensemble import Stack, _control_update, train_ensemble
+from adjointsim.train.ensemble import ControllerEnsemble, train_ensemble
 from adjointsim.train.trainer import TrainConfig, train
 
 MEMBERS = (1, 4, 8, 16)
@@ -39,34 +39,38 @@ def _deviation(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> float:
     return max(float((a[n] - b[n]).abs().max() / b[n].abs().max().clamp(min=1e-30)) for n in b)
 
 
+def _controllers(members: int, dtype: str, where: Path) -> list[ctl.Controller]:
+    """Cart-pole controllers at 4 poles, mode R, one per seed, built (not yet trained)."""
+    out = []
+    for s in range(members):
+        cfg = ctl.ControlConfig(task="cartpole", level=4, mode="R", seed=s, dtype=dtype,
+                                out=str(where / f"s{s}"))
+        cfg.validate()
+        run = ctl.Controller(cfg)
+        run.build()
+        out.append(run)
+    return out
+
+
 def cartpole(members: int, updates: int, dtype: str, work: Path) -> tuple[float, float, float]:
-    """(ensemble seconds, separate seconds, max relative deviation)."""
-    cfgs = [ctl.ControlConfig(task="cartpole", poles=4, mode="R", seed=s, dtype=dtype)
-            for s in range(members)]
-    task = ctl.get_task("cartpole", 4)
-    data = [ctl.initial_states(c, task)[0] for c in cfgs]
-    batches = [[d[u * 8:(u + 1) * 8] for d in data] for u in range(updates)]
-    stack = Stack([ctl.build_net(c, task) for c in cfgs], [c.lr for c in cfgs])
-    states = [{"epoch": 0, **ctl._fresh_epoch()} for _ in cfgs]
+    """(ensemble seconds, separate seconds, max relative deviation) of ``updates`` minibatch
+    updates per member (fewer than an epoch's: no evaluation), through the ensemble's updater
+    and through each run's own update."""
+    ensemble = ControllerEnsemble(_controllers(members, dtype, work / "ensemble"))
     start = time.perf_counter()
-    for u in range(updates):
-        _control_update(cfgs, task, stack, batches[u], states, list(range(members)))
-        for s in states:
-            s["step"] += 1
-    ensemble = time.perf_counter() - start
-    nets = [ctl.build_net(c, task) for c in cfgs]
+    for _ in range(updates):
+        ensemble.update()
+    together = time.perf_counter() - start
+    ensemble.sync()
+    runs = _controllers(members, dtype, work / "separate")
     start = time.perf_counter()
-    for k, (cfg, net) in enumerate(zip(cfgs, nets)):
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-        state = {"epoch": 0, **ctl._fresh_epoch()}
-        for u in range(updates):
-            ctl._update(cfg, task, net, opt, list(net.parameters()), batches[u][k], state)
-            state["step"] += 1
+    for run in runs:
+        for _ in range(updates):
+            run.update()
     separate = time.perf_counter() - start
-    return ensemble, separate, max(
-        _deviation({n: t[k] for n, t in zip(stack.names, stack.tensors)},
-                   {n: p.detach() for n, p in net.named_parameters()})
-        for k, net in enumerate(nets))
+    return together, separate, max(
+        _deviation(*({n: p.detach() for n, p in r.net.named_parameters()} for r in pair))
+        for pair in zip(ensemble.members, runs))
 
 
 def ks_correction(members: int, updates: int, dtype: str, work: Path

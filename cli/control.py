@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 from .options import (
@@ -11,6 +10,8 @@ from .options import (
     config_flags,
     overrides,
     run_options,
+    scene_of,
+    scene_option,
     seeds_option,
     train_seeds,
     write_result,
@@ -19,33 +20,62 @@ from .options import (
 _HELPS = {
     "mode": "the gradient flow: R (regular BPTT), M, S, N, or C (combined)",
     "clip": "clip each update at 1, by value or by global norm",
-    "poles": "cartpole: the number of poles",
-    "target": "quantum: the eigenstate to reach",
-    "control_weight": "guidance: the weight of the control cost",
+    "level": "the task's level, also its own flag (below); default: its easiest",
     "seed": "random seed of the initial states, the weights and the batch order",
     "epochs": "epochs; --resume continues a run to more",
     "lr": "Adam's learning rate",
     "train": "training initial states",
     "test": "test initial states",
     "batch": "initial states per update",
+    "weighting": "how the loss's terms are balanced (a task of several terms)",
     "threads": THREADS_HELP,
 }
+
+
+def _flag(key: str) -> str:
+    return "--" + key.replace("_", "-")
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
     from adjointsim.train.control import TASKS, ControlConfig
 
-    p.add_argument("task", choices=tuple(TASKS), help="the control problem")
+    p.add_argument("task", choices=tuple(TASKS.names()), help="the control problem")
     run_options(p, "runs/control-TASK-MODE")
-    config_flags(p, ControlConfig, ControlConfig.ACCEPTED, skip=("task", "out"), helps=_HELPS)
+    config_flags(p, ControlConfig, ControlConfig.ACCEPTED, skip=("task", "out", "scene"),
+                 helps=_HELPS)
+    levels = p.add_argument_group("each task's level (the config key 'level')")
+    for name, cls in TASKS.items():
+        levels.add_argument(_flag(cls.key), dest=f"level_{name}", default=None,
+                            type=type(cls.levels[0]), choices=cls.levels,
+                            metavar="{" + ",".join(map(str, cls.levels)) + "}",
+                            help=f"{name}: {cls.about}")
+    scene_option(p)
     seeds_option(p)
 
 
+def _level(args: argparse.Namespace, task: str) -> float | None:
+    """The level a task's own flag gives (None: none); another task's flag is refused."""
+    from adjointsim.errors import UserError
+    from adjointsim.train.control import TASKS
+
+    given = {name: getattr(args, f"level_{name}") for name in TASKS.names()
+             if getattr(args, f"level_{name}") is not None}
+    for name in given:
+        if name != task:
+            raise UserError(f"option '{TASKS.get(name).key}': applies to the {name} task, not "
+                            f"{task}")
+    if given and args.level is not None:
+        raise UserError(f"--level and {_flag(TASKS.get(task).key)} give the same key: pass one")
+    return given.get(task)
+
+
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint, run_errors
-    from adjointsim.train.control import ControlConfig, get_task, train_controller
+    from adjointsim.run import require_checkpoint
+    from adjointsim.train.control import ControlConfig, train_controller
 
     values = overrides(args, ControlConfig)
+    values.setdefault("level", _level(args, args.task))
+    values["scene"] = scene_of(args)
     if args.out is not None:
         values["out"] = str(args.out)
     cfg = ControlConfig.load(args.config, **values)
@@ -56,17 +86,25 @@ def run(args: argparse.Namespace) -> int:
         return _ensemble(args, cfg, out)
     if args.resume:
         require_checkpoint(out)
-    task = get_task(cfg.task, cfg.level)
+    task = cfg.make_task()
     n = sum(p.numel() for p in task.net().parameters())
-    print(f"{cfg.task} ({task.knob} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "
+    print(f"{cfg.task} ({task.key} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "
           f"{n:,} parameters", flush=True)
-    with run_errors(out):
-        result = train_controller(cfg, resume=args.resume, progress=args.progress,
-                                  overwrite=args.overwrite)
+    result = train_controller(cfg, resume=args.resume, progress=args.progress,
+                              overwrite=args.overwrite)
     write_result(args, result)
-    loss = result["test_loss"]
-    loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
-    print(f"final test loss {loss}; run in {out} (history.csv, test_loss.png, rollout.png)")
+    return _report(result, out, "final test loss")
+
+
+def _report(result: dict, out: Path, what: str) -> int:
+    """The final test loss and the run's files, as written; 1 for a diverged run."""
+    files = ", ".join(n for n in ("history.csv", "test_loss.png", "rollout.png")
+                      if (out / n).exists())
+    if result["diverged"]:
+        print(f"{what} not finite: the controller diverged (the simulator blew up under it; "
+              f"try a lower --lr or --clip); run in {out} ({files})")
+        return 1
+    print(f"{what} {result['test_loss']:.4e}; run in {out} ({files})")
     return 0
 
 
@@ -80,8 +118,5 @@ def _ensemble(args: argparse.Namespace, cfg, out: Path) -> int:
                                 train_ensemble)
     if args.json is not None:
         write_json(args.json, results)
-    for c, r in zip(cfgs, results):
-        loss = r["test_loss"]
-        loss = f"{loss:.4e}" if loss is not None and math.isfinite(loss) else "not finite"
-        print(f"seed {c.seed}: final test loss {loss}; run in {c.out}")
-    return 0
+    return max(_report(r, Path(c.out), f"seed {c.seed}: final test loss")
+               for c, r in zip(cfgs, results))

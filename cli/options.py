@@ -72,15 +72,18 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     (announced as ``what``) by ``train_members(cfgs, resume=, progress=, overwrite=)``;
     returns the members' configs and what each run returns."""
     from adjointsim.errors import UserError
-    from adjointsim.run import require_checkpoint, run_errors
+    from adjointsim.run import run_errors
     if args.seed is not None:
         raise UserError("--seed and --seeds: pass one")
     if len(set(args.seeds)) < len(args.seeds):
         raise UserError(f"--seeds {' '.join(map(str, args.seeds))} repeats a seed")
     cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]
-    if args.resume:
-        for c in cfgs:
-            require_checkpoint(Path(c.out))
+    # --resume continues the seeds that hold a run; one without (added, or its directory
+    # deleted) starts fresh beside them
+    if args.resume and not any((Path(c.out) / name).exists() for c in cfgs
+                               for name in ("checkpoint.pt", "result.json")):
+        raise UserError(f"--resume: no seed in {out} holds a checkpoint to continue from; run "
+                        "the command without --resume to start them")
     print(f"{what}: an ensemble of {len(cfgs)} seeds", flush=True)
     with run_errors(out):
         results = train_members(cfgs, resume=args.resume, progress=args.progress,

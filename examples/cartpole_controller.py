@@ -50,7 +50,7 @@ def main() -> int:
         out = args.out or Path(tmp)
         results = {}
         for mode in modes:
-            cfg = ControlConfig(task="cartpole", poles=args.poles, mode=mode, seed=args.seed,
+            cfg = ControlConfig(task="cartpole", level=args.poles, mode=mode, seed=args.seed,
                                 batch=8, lr=1e-3, out=str(out / f"cartpole-{mode}"), **size)
             # history.csv, checkpoint.pt, result.json, test_loss.png and rollout.png go to out
             # overwrite: running the example again into the same --out starts afresh

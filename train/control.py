@@ -7,15 +7,11 @@ backward), and the loss judges the trajectory (Schnell & Thuerey 2024):
     c_t = N(flow.net(x_t); θ),   x_{t+1} = S(flow.phys(x_t), c_t),
 
 where ``flow`` (:class:`adjointsim.train.unroll.GradientFlow`) decides where gradients stop
-(R, M, S, N, C). The three tasks of the paper, with the note's constants:
-
-* ``cartpole``: 1–4 poles (``--poles``), 100 steps of Δt = 0.01, loss 1 − mean_i cos θ_i at
-  the last step (swing-up from hanging);
-* ``guidance``: 2 drivers herd 4 evaders, 60 steps of Δt = 4/60, loss the mean over steps of
-  mean_e |x_e|² + r_c mean(c²) (``--control-weight`` r_c ∈ {1, 0.1, 0.01, 0.001}): two terms,
-  ``tracking`` and ``control`` (r_c included), that ``--weighting`` may balance;
-* ``quantum``: ``schrodinger1d-cn`` with m = 1/2, 32 interior points, Δt = 0.0625, 128 steps,
-  loss Σ_t (1 − |⟨ψ_n|ψ_t⟩|²) towards eigenstate n (``--target`` 3..5).
+(R, M, S, N, C). The tasks register themselves in :mod:`adjointsim.train.tasks`, one file
+each (the paper's ``cartpole``, ``guidance`` and ``quantum``, and ``heat``); a run takes the
+task's level (``level``, on the command line the task's own flag: ``--poles``,
+``--control-weight``, ``--target``, ``--wavenumber``) and its scene (``scene``: the solver's
+keywords over the task's, checked by the solver).
 
 Training: Adam, 256 training and 256 test initial states, batch 8, the last layer of every
 controller zero-initialised (c = 0 at the start, as in the reference runs). A loss of several
@@ -26,207 +22,43 @@ in place) and the flow takes the gradient of Σ_k λ_k L_k; ``pcgrad`` and ``con
 the terms' gradients themselves, so they go with the flows that are one plain reverse pass
 (R, M, S, N) and C is refused for every scheme that reads gradients. Where a scheme reads
 gradients, the epoch's first update does not diagnose cos(g_M, g_R) (its doubled batch would
-change the gradients the scheme reads). A run directory
-holds ``config.json``, ``checkpoint.pt`` (atomic, every epoch, and on Ctrl-C between two
-updates), ``history.csv`` (per epoch: mean minibatch loss, full training and test loss, update
-norm, cos(g_M, g_R) on the epoch's first minibatch, seconds), ``result.json`` and the plots
-``test_loss.png`` and ``rollout.png``. A resumed run ends with the weights of an uninterrupted
-one, and may be continued to more epochs.
+change the gradients the scheme reads).
+
+A run is a :class:`Controller` on the run engine (:mod:`adjointsim.engine`): its directory
+holds ``config.json``, ``checkpoint.pt`` (every epoch, and on Ctrl-C between two updates),
+``history.csv`` (per epoch: mean minibatch loss, full training and test loss, update norm,
+cos(g_M, g_R) on the epoch's first minibatch, seconds), ``result.json`` (``diverged`` when the
+final test loss is not finite) and the plots ``test_loss.png`` and ``rollout.png`` (the task's
+own; none for a diverged run). A resumed run ends with the weights of an uninterrupted one,
+and a finished one may be continued to more epochs.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
-import adjointsim
-from adjointsim.errors import RunExists, UserError
-from adjointsim.files import pyplot, save_figure, uninterrupted, write_json
-from adjointsim.nets.mlp import MLP
-from adjointsim.run import (
-    SEEDS,
-    Config,
-    Interval,
-    check_memory,
-    differing,
-    discard,
-    holds_run,
-    plot_history,
-    read_result,
-    refuse_foreign,
-    write_history,
-)
+from adjointsim import engine
+from adjointsim.errors import DamagedFileError, UserError
+from adjointsim.files import pyplot, save_figure
+from adjointsim.run import SEEDS, Config, Interval, check_memory, plot_history
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
-from .checkpoint import load_checkpoint, restore, save_checkpoint
+from .checkpoint import STORE, restore
+from .tasks import TASKS, Task, get_task
 from .threads import use_threads
 from .unroll import CLIPS, FLOWS, GradientFlow, Update, clip_update
-from .weighting import GENERIC, SCHEMES, Weighting
+from .weighting import ALIASES, GENERIC, SCHEMES, Weighting, canonical_rule
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-
-
-# ----------------------------------------------------------------------------- tasks
-class Task:
-    """One control problem at one complexity level: scene, initial states, net, loss."""
-
-    name: str
-    knob: str  # the complexity option's config key
-    levels: tuple  # accepted values, easiest first
-    steps: int
-    #: values per state in the controller's widest layer (for the memory estimate)
-    widest = 100
-    #: the loss's named terms, which a weighting may balance (see :meth:`step_terms`)
-    terms: tuple[str, ...] = ("loss",)
-
-    def __init__(self, level: Any):
-        if level not in self.levels:
-            raise ValueError(
-                f"{self.name}: {self.knob.replace('_', '-')} must be one of "
-                f"{', '.join(map(str, self.levels))}, not {level!r}"
-            )
-        self.level = level
-
-    def initial_states(self, rng: np.random.Generator, count: int) -> np.ndarray:
-        return self.solver.random_state(rng, count)
-
-    def control(self, out: torch.Tensor) -> torch.Tensor:
-        """Network output (B, k) to the solver's control (B, *control_shape)."""
-        shape = self.solver.control_shape
-        if out.ndim < 1 or out[0].numel() != int(np.prod(shape)):
-            raise ValueError(
-                f"{self.name}: the controller's output has shape {tuple(out.shape)}; expected "
-                f"(batch, {int(np.prod(shape))}), one control {shape} per batch element"
-            )
-        return out.reshape(out.shape[0], *shape)
-
-    def net(self) -> nn.Module:
-        size = int(np.prod(self.solver.state_shape(1)))
-        return _zero_last(nn.Sequential(
-            nn.Flatten(), MLP(size, int(np.prod(self.solver.control_shape)), width=100, depth=2),
-        ))
-
-    def memory(self, train: int, test: int, batch: int, itemsize: int) -> int:
-        """Bytes a run needs, about: the initial states (drawn in float64), then the larger of
-        a rollout over all of them at once (no tape) and one update's tape (C's doubled
-        batch). The factors are measured with the paper's controllers, rounded up."""
-        size = int(np.prod(self.solver.state_shape(1)))
-        states = (train + test) * size * (8 + itemsize)
-        rollout = max(train, test) * (4 * self.widest * itemsize + 64 * size)
-        tape = batch * self.steps * 8 * self.widest * itemsize
-        return states + max(rollout, tape)
-
-    def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
-        """Loss term of the state x_{t+1} reached with control c_t (None: no term)."""
-        raise NotImplementedError
-
-    def step_terms(self, x: torch.Tensor, c: torch.Tensor, t: int
-                   ) -> dict[str, torch.Tensor] | None:
-        """The loss's terms of the state x_{t+1} reached with control c_t, one per name of
-        :attr:`terms`, summing to :meth:`step_loss` (None: no term)."""
-        term = self.step_loss(x, c, t)
-        return None if term is None else {"loss": term}
-
-    def total(self, terms: list[torch.Tensor]) -> torch.Tensor:
-        return torch.stack(terms).sum()
-
-
-class CartPoleTask(Task):
-    name, knob, levels, steps = "cartpole", "poles", (1, 2, 3, 4), 100
-
-    def __init__(self, level: Any = 1):
-        super().__init__(level)
-        self.solver = adjointsim.get("cartpole")(poles=level)
-
-    def step_loss(self, x, c, t):
-        if t < self.steps - 1:
-            return None
-        return (1.0 - torch.cos(x[:, 0, 1:]).mean(dim=1)).mean()
-
-
-class GuidanceTask(Task):
-    name, knob, levels, steps = "guidance", "control_weight", (1.0, 0.1, 0.01, 0.001), 60
-
-    def __init__(self, level: Any = 1.0):
-        super().__init__(float(level) if isinstance(level, int | float) else level)
-        self.solver = adjointsim.get("guidance")(drivers=2, evaders=4, dt=4.0 / self.steps)
-
-    terms = ("tracking", "control")
-
-    def _costs(self, x: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """mean_e |x_e|² and mean(c²)."""
-        return (x[:, :2, self.solver.drivers:] ** 2).sum(dim=1).mean(), (c**2).mean()
-
-    def step_loss(self, x, c, t):
-        track, effort = self._costs(x, c)
-        return (track + self.level * effort) / self.steps
-
-    def step_terms(self, x, c, t):
-        track, effort = self._costs(x, c)
-        return {"tracking": track / self.steps, "control": self.level * effort / self.steps}
-
-
-class QuantumTask(Task):
-    name, knob, levels, steps = "quantum", "target", (3, 4, 5), 128
-    widest = 60 * 16  # the first convolution's channels × points
-
-    def __init__(self, level: Any = 3):
-        super().__init__(level)
-        self.solver = adjointsim.get("schrodinger1d-cn")(n=32, length=2.0, dt=0.0625, mass=0.5)
-        j = np.arange(1, 33)
-        self.eigen = [np.sin(k * np.pi * j / 33) for k in range(1, 6)]
-        self._target = None
-
-    def initial_states(self, rng, count):
-        """(c1 e^{i p1} ψ1 + c2 e^{i p2} ψ2)/norm, c ~ N(0, 1), p ~ U(0, 2π)."""
-        c = rng.standard_normal((count, 2))
-        p = rng.uniform(0.0, 2.0 * np.pi, (count, 2))
-        psi = (c[:, :1] * np.exp(1j * p[:, :1]) * self.eigen[0]
-               + c[:, 1:] * np.exp(1j * p[:, 1:]) * self.eigen[1])
-        psi /= np.sqrt(self.solver.h * np.sum(np.abs(psi) ** 2, axis=1, keepdims=True))
-        return np.stack([psi.real, psi.imag], axis=1)
-
-    def net(self):
-        return _zero_last(nn.Sequential(
-            nn.Conv1d(2, 60, 3, stride=2, padding=1), nn.Tanh(),
-            nn.Conv1d(60, 60, 3, stride=2, padding=1), nn.Tanh(),
-            nn.Flatten(), nn.Linear(60 * 8, 1),
-        ))
-
-    def step_loss(self, x, c, t):
-        if self._target is None or self._target.dtype != x.dtype:
-            self._target = torch.tensor(self.eigen[self.level - 1], dtype=x.dtype)
-        # ⟨ψ_n|ψ⟩ = h Σ ψ_n ψ (ψ_n real, both normalised as h Σ|ψ|² = 1)
-        overlap = self.solver.h * (x @ self._target)  # (B, 2): real and imaginary part
-        return (1.0 - (overlap**2).sum(dim=1)).mean()
-
-
-TASKS: dict[str, type[Task]] = {t.name: t for t in (CartPoleTask, GuidanceTask, QuantumTask)}
-
-
-def get_task(name: str, level: Any = None) -> Task:
-    if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; choose from {', '.join(TASKS)}")
-    cls = TASKS[name]
-    return cls() if level is None else cls(level)
-
-
-def _zero_last(net: nn.Sequential) -> nn.Sequential:
-    last = [m for m in net.modules() if isinstance(m, nn.Linear)][-1]
-    nn.init.zeros_(last.weight)
-    nn.init.zeros_(last.bias)
-    return net
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -282,10 +114,10 @@ class ControlConfig(Config):
     task: str = "cartpole"
     mode: str = "C"
     clip: str = "none"
-    #: complexity: poles (cartpole), target (quantum), control_weight (guidance)
-    poles: int = 1
-    target: int = 3
-    control_weight: float = 1.0
+    #: the task's complexity level (None: its easiest), one of its ``levels``
+    level: float | None = None
+    #: the solver's keywords over the task's scene (dt, grid, coefficients)
+    scene: dict = field(default_factory=dict)
     seed: int = 0
     epochs: int = 100
     lr: float = 1e-3
@@ -299,10 +131,11 @@ class ControlConfig(Config):
     threads: int = 1
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = {
-        "task": tuple(TASKS),
+        "task": tuple(TASKS.names()),
         "mode": FLOWS,
         "clip": CLIPS,
-        **{cls.knob: cls.levels for cls in TASKS.values()},
+        "level": "one of the task's levels",
+        "scene": "the solver's keywords (dt, ...)",
         "seed": SEEDS,
         "epochs": Interval(1),
         "lr": Interval(0, lo_open=True),
@@ -310,24 +143,24 @@ class ControlConfig(Config):
         "test": Interval(1),
         "batch": Interval(1),
         "dtype": tuple(DTYPES),
-        "weighting": GENERIC,
+        "weighting": (*GENERIC, *(a for a, n in ALIASES.items() if n in GENERIC)),
         "out": "a non-empty path",
         "threads": Interval(1),
     }
 
-    @property
-    def level(self) -> Any:
-        return getattr(self, TASKS[self.task].knob)
-
     def check(self, where: str) -> None:
-        """Only the task's own level knob may leave its default; a batch fits in the training
-        states; the run fits in memory and in a lifetime (refused before anything is drawn)."""
-        defaults = {f.name: f.default for f in dataclasses.fields(self)}
-        for name, cls in TASKS.items():
-            if name != self.task and getattr(self, cls.knob) != defaults[cls.knob]:
-                raise UserError(f"config key {cls.knob!r}{where}: applies to the {name} task, "
-                                f"not {self.task}")
-        if self.weighting != "uniform" and len(TASKS[self.task].terms) < 2:
+        """The level is one of the task's (as the task spells it; None: the easiest), the
+        scene one its solver accepts (recorded whole, the task's defaults included), the
+        weighting one the task and mode take (recorded under its own name); a batch fits in
+        the training states; the run fits in memory and in a lifetime (refused before
+        anything is drawn)."""
+        cls = TASKS.get(self.task)
+        try:
+            self.level = cls.level_of(self.level)
+        except ValueError as e:
+            raise UserError(f"config key 'level'{where}: {e}") from None
+        self.weighting = canonical_rule(self.weighting)
+        if self.weighting != "uniform" and len(cls.terms) < 2:
             raise UserError(f"config key 'weighting'{where}: the {self.task} task's loss has "
                             "one term; only uniform applies")
         if self.mode == "C" and SCHEMES[self.weighting].needs == "grads":
@@ -338,7 +171,11 @@ class ControlConfig(Config):
         if self.batch > self.train:
             raise UserError(f"config key 'batch'{where}: {self.batch} exceeds train "
                             f"({self.train}), the initial states it is drawn from")
-        task = get_task(self.task, self.level)
+        try:
+            task = get_task(self.task, self.level, self.scene)
+        except ValueError as e:
+            raise UserError(f"config key 'scene'{where}: {e}") from None
+        self.scene = dict(task.scene)
         need = task.memory(self.train, self.test, self.batch, DTYPES[self.dtype].itemsize)
         check_memory(need, f"config keys 'train', 'test' and 'batch'{where}: {self.train} "
                      f"training and {self.test} test initial states in batches of "
@@ -350,14 +187,14 @@ class ControlConfig(Config):
                             f"of {task.steps} steps, more than the {MAX_ROLLOUTS:.0e} accepted "
                             "(the paper's runs take 2.6e+05); use fewer")
 
+    def make_task(self) -> Task:
+        """The configured task at its level, in its scene."""
+        return get_task(self.task, self.level, self.scene)
 
-# ----------------------------------------------------------------------------- training
+
+# ----------------------------------------------------------------------------- one run
 HISTORY_KEYS = ("epoch", "batch_loss", "train_loss", "test_loss", "update_norm", "cos_mr",
                 "skipped", "seconds")
-#: a run directory's files besides config.json, checkpoint.pt and result.json
-RUN_FILES = ("history.csv", "test_loss.png", "rollout.png")
-#: what may change when a run is resumed: its length, where it lives, how many threads it uses
-RESUMABLE = ("epochs", "out", "threads")
 
 
 def initial_states(cfg: ControlConfig, task: Task) -> tuple[torch.Tensor, torch.Tensor]:
@@ -373,114 +210,27 @@ def build_net(cfg: ControlConfig, task: Task) -> nn.Module:
     return task.net().to(DTYPES[cfg.dtype])
 
 
-def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = True,
-                     overwrite: bool = False) -> dict:
-    """Train a controller as configured; returns the result (also in ``cfg.out``).
-
-    A ``cfg.out`` holding a run is refused unless ``resume`` (continue it, to more epochs too)
-    or ``overwrite`` (discard it and start again) is given. Ctrl-C saves a checkpoint between
-    two updates and re-raises.
-    """
-    cfg.validate()
-    if resume and overwrite:
-        raise UserError("--resume continues a run and --overwrite discards it: pass one")
-    use_threads(cfg.threads)
-    out = Path(cfg.out)
-    ckpt = _claim(cfg, out, resume, overwrite)
-    if ckpt is not None and _finished(ckpt, cfg, out):
-        return read_result(out / "result.json")
-    task = get_task(cfg.task, cfg.level)
-    x_train, x_test = initial_states(cfg, task)
-    net = build_net(cfg, task)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    # max/avg keeps one term's weight at 1: the PINNs' PDE residual, here the objective the
-    # controller exists for (the task's first term); ID takes the largest spread as reference
-    reference = task.terms[0] if cfg.weighting == "max-avg" else None
-    weighting = None if cfg.weighting == "uniform" else Weighting(
-        task.terms, cfg.weighting, reference=reference, seed=cfg.seed)
-    # the epoch's progress too, so that Ctrl-C between two updates resumes where it stopped
-    state = {"epoch": 0, "finished": False, **_fresh_epoch()}
-    history: list[dict] = []
-    if ckpt is not None:
-        restore(net, ckpt["net"], out / "checkpoint.pt")
-        restore(opt, ckpt["optimizer"], out / "checkpoint.pt")
-        if weighting is not None:
-            restore(weighting, ckpt["weighting"], out / "checkpoint.pt")
-        state, history = state | ckpt["state"], ckpt["history"]
-        state["finished"] = False
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "config.json", cfg.as_dict())
-
-    def save() -> None:
-        save_checkpoint({"config": cfg.as_dict(), "net": net.state_dict(),
-                         "optimizer": opt.state_dict(), "state": dict(state),
-                         "history": history,
-                         **({} if weighting is None else {"weighting": weighting.state_dict()})},
-                        out / "checkpoint.pt")
-
-    params = list(net.parameters())
-    per_epoch = cfg.train // cfg.batch
-    bar = tqdm(total=cfg.epochs, initial=state["epoch"], unit="epoch", disable=not progress,
-               desc=f"{cfg.task} {cfg.mode}")
-    try:
-        while state["epoch"] < cfg.epochs:
-            order = torch.randperm(cfg.train, generator=torch.Generator().manual_seed(
-                int(np.random.SeedSequence([cfg.seed, state["epoch"]]).generate_state(1)[0])))
-            while state["step"] < per_epoch:
-                with uninterrupted():
-                    start, i = time.perf_counter(), state["step"]
-                    _update(cfg, task, net, opt, params,
-                            x_train[order[i * cfg.batch:(i + 1) * cfg.batch]], state,
-                            weighting, state["epoch"] * per_epoch + i)
-                    state["step"] += 1
-                    state["seconds"] += time.perf_counter() - start
-            with uninterrupted():
-                _end_epoch(cfg, task, net, x_train, x_test, state, history)
-                write_history(out / "history.csv", history, HISTORY_KEYS)
-            save()
-            bar.update()
-            bar.set_postfix(test=f"{history[-1]['test_loss']:.3e}")
-    except KeyboardInterrupt:
-        save()
-        raise
-    finally:
-        bar.close()
-    return _finish(cfg, task, net, x_test, history, weighting)
-
-
-def _finish(cfg: ControlConfig, task: Task, net: nn.Module, x_test: torch.Tensor,
-            history: list[dict], weighting: Weighting | None = None) -> dict:
-    """A finished run's plots and ``result.json``; returns the result."""
-    out = Path(cfg.out)
-    result = {**cfg.as_dict(), "level": cfg.level, "test_loss": history[-1]["test_loss"],
-              "train_loss": history[-1]["train_loss"],
-              "test_terms": evaluate(task, net, x_test, terms=True),
-              "weights": None if weighting is None else dict(weighting.weights),
-              "parameters": sum(p.numel() for p in net.parameters()),
-              "seconds": float(sum(h["seconds"] for h in history))}
-    # the plots first: a run stopped while plotting has no result.json and resumes to them
-    plot_history(out / "test_loss.png", {cfg.mode: history}, "epoch", "test_loss", "epoch",
-                 "test loss", title=_title(cfg), smooth=30)
-    try:
-        plot_rollout(task, net, x_test[:1], out / "rollout.png", title=_title(cfg))
-    except (NonFiniteStateError, NonFiniteInputError) as e:
-        warnings.warn(f"no rollout.png: the controlled rollout is not finite ({e})",
-                      RuntimeWarning, stacklevel=2)
-    write_json(out / "result.json", result)
-    return result
-
-
-def _fresh_epoch() -> dict:
+def fresh_epoch() -> dict:
     """An epoch's progress before its first update."""
     return {"step": 0, "losses": [], "norms": [], "cos": float("nan"), "skipped": 0,
             "seconds": 0.0}
 
 
-def _update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Optimizer,
-            params: list[torch.Tensor], x0: torch.Tensor, state: dict,
-            weighting: Weighting | None = None, step: int = 0) -> None:
+def record(state: dict, loss: float, update: Update, first: bool) -> None:
+    """An update's loss and norm (and on the epoch's first update, the diagnosed cos(g_M, g_R))
+    in the epoch's progress ``state``."""
+    state["losses"].append(loss)
+    state["norms"].append(update.norm())
+    if first:
+        state["cos"] = update.cosine()
+
+
+def minibatch_update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Optimizer,
+                     params: list[torch.Tensor], x0: torch.Tensor, state: dict,
+                     weighting: Weighting | None = None, step: int = 0) -> None:
     """One minibatch's update (the run's ``step``-th), recorded in the epoch's progress
-    (``state``); ``weighting`` balances the task's terms (None: its loss as it is)."""
+    (``state``); ``weighting`` balances the task's terms (None: its loss as it is). An
+    update whose rollout or gradient is not finite is skipped and counted."""
     reads = weighting is not None and weighting.scheme.needs == "grads"
     first = state["step"] == 0 and not reads
     flow = GradientFlow(cfg.mode, cfg.clip, diagnose=first)
@@ -505,118 +255,184 @@ def _update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Opt
         state["skipped"] += 1
         return
     opt.step()
-    state["losses"].append(float(loss.detach()))
-    state["norms"].append(update.norm())
-    if first:
-        state["cos"] = update.cosine()
+    record(state, float(loss.detach()), update, first)
 
 
-def _end_epoch(cfg: ControlConfig, task: Task, net: nn.Module, x_train: torch.Tensor,
-               x_test: torch.Tensor, state: dict, history: list[dict],
-               losses: tuple[float, float] | None = None) -> None:
-    """The epoch's history row (with the full training and test losses, evaluated here unless
-    ``losses`` gives them); the next epoch."""
-    start = time.perf_counter()
-    train, test = losses or (evaluate(task, net, x_train), evaluate(task, net, x_test))
-    row = {
-        "epoch": state["epoch"] + 1,
-        "batch_loss": float(np.mean(state["losses"])) if state["losses"] else float("nan"),
-        "train_loss": train,
-        "test_loss": test,
-        "update_norm": float(np.mean(state["norms"])) if state["norms"] else float("nan"),
-        "cos_mr": state["cos"],
-        "skipped": state["skipped"],
-    }
-    history.append({**row, "seconds": state["seconds"] + time.perf_counter() - start})
-    state.update(epoch=state["epoch"] + 1, **_fresh_epoch())
-    state["finished"] = state["epoch"] == cfg.epochs
+class Controller(engine.Problem):
+    """One controller's run: build (task, initial states, net, Adam, weighting), one
+    minibatch update at a time (the last of an epoch evaluates the full training and test
+    loss: a checkpoint's boundary), the history, the result and the plots. An ensemble
+    (:mod:`adjointsim.train.ensemble`) steps several through :meth:`batch`, :meth:`advance` and
+    :meth:`end_epoch`, as :meth:`update` does for one."""
+
+    EXTENDABLE = ("epochs",)
+    HISTORIES = {"history.csv": HISTORY_KEYS}
+    RUN_FILES = ("test_loss.png", "rollout.png")
+    RESULT_KEYS = ("test_loss", "train_loss", "test_terms", "weights", "parameters", "seconds",
+                   "diverged")
+    UNIT = "epoch"
+    STORE = STORE
+
+    def __init__(self, config: ControlConfig):
+        super().__init__(config, config.out)
+        self.per_epoch = config.train // config.batch
+
+    def describe(self) -> str:
+        return f"{self.config.task} {self.config.mode}"
+
+    def total(self) -> float:
+        return self.config.epochs
+
+    def position(self) -> float:
+        return self.state["epoch"] + self.state["step"] / self.per_epoch
+
+    def build(self) -> None:
+        cfg = self.config
+        self.task = cfg.make_task()
+        self.x_train, self.x_test = initial_states(cfg, self.task)
+        self.net = build_net(cfg, self.task)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
+        self.params = list(self.net.parameters())
+        # max/avg keeps one term's weight at 1: the PINNs' PDE residual, here the objective the
+        # controller exists for (the task's first term); ID takes the largest spread as reference
+        reference = self.task.terms[0] if cfg.weighting == "max-avg" else None
+        self.weighting = None if cfg.weighting == "uniform" else Weighting(
+            self.task.terms, cfg.weighting, reference=reference, seed=cfg.seed)
+        # the epoch's progress too, so that Ctrl-C between two updates resumes where it stopped
+        self.state = {"epoch": 0, **fresh_epoch()}
+        self.history: list[dict] = []
+        self.order: tuple[int, torch.Tensor] | None = None
+
+    def batch(self) -> torch.Tensor:
+        """The next minibatch of training initial states, in the epoch's order (drawn from the
+        seed and the epoch)."""
+        epoch, i, size = self.state["epoch"], self.state["step"], self.config.batch
+        if self.order is None or self.order[0] != epoch:
+            seed = int(np.random.SeedSequence([self.config.seed, epoch]).generate_state(1)[0])
+            self.order = (epoch, torch.randperm(self.config.train,
+                                                generator=torch.Generator().manual_seed(seed)))
+        return self.x_train[self.order[1][i * size:(i + 1) * size]]
+
+    def update(self) -> bool:
+        start = time.perf_counter()
+        minibatch_update(self.config, self.task, self.net, self.optimizer, self.params,
+                         self.batch(), self.state, self.weighting,
+                         self.state["epoch"] * self.per_epoch + self.state["step"])
+        if not self.advance(time.perf_counter() - start):
+            return False
+        self.end_epoch()
+        return True
+
+    def advance(self, seconds: float) -> bool:
+        """Count an update that took ``seconds``; whether it was the epoch's last (then
+        :meth:`end_epoch` is due)."""
+        self.state["step"] += 1
+        self.state["seconds"] += seconds
+        return self.state["step"] == self.per_epoch
+
+    def end_epoch(self, losses: tuple[float, float] | None = None, seconds: float = 0.0
+                  ) -> None:
+        """The epoch's history row, with the full training and test losses (evaluated here
+        unless ``losses`` gives them, taken in ``seconds``); the next epoch begins."""
+        start = time.perf_counter()
+        s = self.state
+        s["seconds"] += seconds
+        train, test = losses or (evaluate(self.task, self.net, self.x_train),
+                                 evaluate(self.task, self.net, self.x_test))
+        self.history.append({
+            "epoch": s["epoch"] + 1,
+            "batch_loss": float(np.mean(s["losses"])) if s["losses"] else float("nan"),
+            "train_loss": train,
+            "test_loss": test,
+            "update_norm": float(np.mean(s["norms"])) if s["norms"] else float("nan"),
+            "cos_mr": s["cos"],
+            "skipped": s["skipped"],
+            "seconds": s["seconds"] + time.perf_counter() - start,
+        })
+        self.state = {"epoch": s["epoch"] + 1, **fresh_epoch()}
+
+    def postfix(self) -> dict[str, Any]:
+        return {"test": f"{self.history[-1]['test_loss']:.3e}"} if self.history else {}
+
+    def state_dict(self) -> dict:
+        return {**self.state, "net": self.net.state_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                **({} if self.weighting is None else {"weighting": self.weighting.state_dict()})}
+
+    def load_state_dict(self, state: dict) -> None:
+        path = self.out / engine.CHECKPOINT
+        state = dict(state)
+        wanted = ("net", "optimizer", *(() if self.weighting is None else ("weighting",)))
+        missing = [k for k in wanted if k not in state]
+        if missing:
+            raise DamagedFileError(f"{path} holds no controller's {', '.join(missing)}; delete "
+                                   "it, or start the run again with --overwrite")
+        restore(self.net, state.pop("net"), path)
+        restore(self.optimizer, state.pop("optimizer"), path)
+        if self.weighting is not None:
+            restore(self.weighting, state.pop("weighting"), path)
+        self.state = {**self.state, **state}
+
+    def histories(self) -> dict[str, list[dict]]:
+        return {"history.csv": self.history}
+
+    def load_histories(self, histories: dict[str, list[dict]]) -> None:
+        self.history = list(histories["history.csv"])
+
+    @property
+    def diverged(self) -> bool:
+        """Whether the final test loss is not finite (the controller blew the simulator up)."""
+        return not math.isfinite(self.history[-1]["test_loss"])
+
+    def finish(self) -> dict:
+        """The final losses, the test loss's terms, the weights, the size and time, whether
+        the run diverged, and the level under the task's own name (``poles``: 4)."""
+        last = self.history[-1]
+        return {"test_loss": last["test_loss"], "train_loss": last["train_loss"],
+                "test_terms": evaluate(self.task, self.net, self.x_test, terms=True),
+                "weights": None if self.weighting is None else dict(self.weighting.weights),
+                "parameters": sum(p.numel() for p in self.net.parameters()),
+                "seconds": float(sum(h["seconds"] for h in self.history)),
+                "diverged": self.diverged, self.task.key: self.task.level}
+
+    def plot(self) -> None:
+        """``test_loss.png``, and ``rollout.png`` unless the run diverged (its rollout is not
+        finite: an earlier run's is removed)."""
+        cfg = self.config
+        title = f"{cfg.task}, {self.task.key.replace('_', ' ')} {cfg.level}, mode {cfg.mode}"
+        plot_history(self.out / "test_loss.png", {cfg.mode: self.history}, "epoch",
+                     "test_loss", "epoch", "test loss", title=title, smooth=30)
+        if self.diverged:
+            (self.out / "rollout.png").unlink(missing_ok=True)
+        else:
+            plot_rollout(self.task, self.net, self.x_test[:1], self.out / "rollout.png", title)
 
 
-def _claim(cfg: ControlConfig, out: Path, resume: bool, overwrite: bool) -> dict | None:
-    """The checkpoint of the run in ``out`` to continue (None: start afresh). Somebody else's
-    files, a run of another configuration, and a run not to be continued are refused."""
-    ckpt_path = out / "checkpoint.pt"
-    again = "choose another --out, or start again with --overwrite"
-    if overwrite:
-        if not holds_run(out, cfg.as_dict()):
-            refuse_foreign(out, cfg.as_dict())
-        discard(out, RUN_FILES)
-        return None
-    if not ckpt_path.exists():
-        if (out / "result.json").exists():
-            raise RunExists(f"{out} holds a finished run without its checkpoint; {again}")
-        refuse_foreign(out, cfg.as_dict())
-        return None
-    ckpt = load_checkpoint(ckpt_path, ("config", "net", "optimizer", "state", "history"),
-                           recover=f"delete it, or {again}")
-    # a run recorded before the weighting was a key trained its loss as it is
-    recorded = {"weighting": "uniform", **ckpt["config"]}
-    differ = differing(cfg.as_dict(), recorded, RESUMABLE)
-    if differ:
-        raise RunExists(f"{out} holds a run of another configuration (differs in "
-                        f"{', '.join(differ)}); {again}")
-    state = ckpt["state"]
-    begun = state["epoch"] + (state.get("step", 0) > 0)  # epochs finished or begun
-    if begun > cfg.epochs:
-        part = " and part of the next" if begun > state["epoch"] else ""
-        raise UserError(f"{out} holds {state['epoch']} epochs{part}; pass --epochs {begun} or "
-                        f"more, or {again}")
-    if not resume:
-        what = ("a finished run; continue it to more --epochs with --resume"
-                if _finished(ckpt, cfg, out) else "an unfinished run; continue it with --resume")
-        raise RunExists(f"{out} holds {what}, {again}")
-    return ckpt
+def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = True,
+                     overwrite: bool = False) -> dict:
+    """Train a controller as configured; returns the result (also in ``cfg.out``).
 
-
-def _finished(ckpt: dict, cfg: ControlConfig, out: Path) -> bool:
-    """Whether the checkpoint's run is the finished run of ``cfg``, its result written (a run
-    stopped between its last checkpoint and result.json resumes to write it)."""
-    return (ckpt["state"]["finished"] and ckpt["config"]["epochs"] == cfg.epochs
-            and (out / "result.json").exists())
-
-
-def _title(cfg: ControlConfig) -> str:
-    return f"{cfg.task}, {TASKS[cfg.task].knob} {cfg.level}, mode {cfg.mode}"
+    A ``cfg.out`` holding a run is refused unless ``resume`` (continue it, to more epochs too)
+    or ``overwrite`` (discard it and start again) is given; ``resume`` starts a run where
+    ``cfg.out`` holds none (a study's cells resume this way; the command line refuses
+    ``--resume`` there). Ctrl-C saves a checkpoint between two updates and re-raises.
+    """
+    cfg.validate()
+    use_threads(cfg.threads)
+    problem = Controller(cfg)
+    return engine.run(problem, resume=resume and engine.RunDir(problem).holds(),
+                      overwrite=overwrite, progress=progress)
 
 
 # ----------------------------------------------------------------------------- plots
 @torch.no_grad()
 def plot_rollout(task: Task, net: nn.Module, x0: torch.Tensor, path: Path,
                  title: str = "") -> None:
-    """One controlled rollout: pole angles; driver and evader paths; |ψ|² over t and x."""
+    """One controlled rollout from ``x0`` (one state), drawn by the task."""
     plt = pyplot()
-    _, (states, controls) = closed_loop(task, net, x0, keep=True)
+    _, (states, _) = closed_loop(task, net, x0, keep=True)
     xs = torch.stack(states)[:, 0].numpy()  # (n + 1, C, *grid)
-    t = np.arange(len(xs)) * task.solver.dt
     fig, ax = plt.subplots(figsize=(6, 4))
-    if task.name == "cartpole":
-        for i in range(1, xs.shape[2]):
-            ax.plot(t, xs[:, 0, i], label=f"θ_{i}")
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel("t")
-        ax.set_ylabel("pole angle (0 = upright)")
-        ax.legend(fontsize=8)
-    elif task.name == "guidance":
-        nd = task.solver.drivers
-        for i in range(xs.shape[2]):
-            driver = i < nd
-            ax.plot(xs[:, 0, i], xs[:, 1, i], color="C3" if driver else "C0", lw=1)
-            ax.plot(xs[0, 0, i], xs[0, 1, i], "o", color="C3" if driver else "C0", ms=3)
-        ax.plot([], [], color="C3", label="drivers")
-        ax.plot([], [], color="C0", label="evaders")
-        ax.plot(0, 0, "k+", ms=10)
-        # the scene of the start (drivers r ≤ 4) and the evaders: far-flung drivers leave it
-        r = max(float(np.abs(xs[0, :2]).max()), float(np.abs(xs[:, :2, nd:]).max())) + 0.5
-        ax.set_xlim(-r, r)
-        ax.set_ylim(-r, r)
-        ax.set_aspect("equal")
-        ax.legend(fontsize=8)
-    else:
-        density = xs[:, 0] ** 2 + xs[:, 1] ** 2
-        im = ax.imshow(density.T, aspect="auto", origin="lower",
-                       extent=(0, t[-1], 0, task.solver.length))
-        fig.colorbar(im, ax=ax, label="|ψ|²")
-        ax.set_xlabel("t")
-        ax.set_ylabel("x")
+    task.draw(fig, ax, xs, np.arange(len(xs)) * task.solver.dt)
     ax.set_title(title, fontsize=9)
     save_figure(fig, path, dpi=110)

@@ -13,7 +13,7 @@ import adjointsim
 import adjointsim.run
 from adjointsim.cli import main as cli
 from adjointsim.run import read_history
-from adjointsim.train import control
+from adjointsim.train import checkpoint, control
 from adjointsim.train.checkpoint import load_checkpoint
 from adjointsim.train.model import NeuralStepper
 from adjointsim.train.trainer import TrainConfig
@@ -206,12 +206,13 @@ def test_bad_inputs_name_the_problem():
     bad[1, 0, 0] = float("inf")
     with pytest.raises(ValueError, match="non-finite"):
         control.closed_loop(t, net, bad)
-    with pytest.raises(ValueError, match="config key 'poles': 5 is not one of 1, 2, 3, 4"):
-        control.ControlConfig.load(poles=5)
-    with pytest.raises(ValueError, match="config key 'target': 2 is not one of 3, 4, 5"):
-        control.ControlConfig.load(task="quantum", target=2)
-    with pytest.raises(ValueError, match="'control_weight': 0.5 is not one of 1.0, 0.1, 0.01"):
-        control.ControlConfig.load(task="guidance", control_weight=0.5)
+    with pytest.raises(ValueError, match=r"config key 'level': 5 is not one of 1, 2, 3, 4 \(the "
+                       r"cartpole task's poles\)"):
+        control.ControlConfig.load(level=5)
+    with pytest.raises(ValueError, match="config key 'level': 2 is not one of 3, 4, 5"):
+        control.ControlConfig.load(task="quantum", level=2)
+    with pytest.raises(ValueError, match="'level': 0.5 is not one of 1.0, 0.1, 0.01"):
+        control.ControlConfig.load(task="guidance", level=0.5)
     with pytest.raises(ValueError, match="'task': 'pendulum' is not one of cartpole, guidance"):
         control.ControlConfig.load(task="pendulum")
     with pytest.raises(ValueError, match="'mode': 'F' is not one of R, M, S, N, C"):
@@ -224,17 +225,19 @@ def test_bad_inputs_name_the_problem():
         control.ControlConfig.load(seed=-1)
     with pytest.raises(ValueError, match=r"'batch': 9 exceeds train \(8\)"):
         control.ControlConfig.load(train=8, batch=9)
-    with pytest.raises(ValueError, match="'poles': applies to the cartpole task, not guidance"):
-        control.ControlConfig.load(task="guidance", poles=2)
     with pytest.raises(ValueError, match=r"10000000 × 256 = 2.56e\+09 training rollouts"):
         control.ControlConfig.load(epochs=10**7)
 
 
 def test_toml_config(tmp_path):
     path = tmp_path / "c.toml"
-    path.write_text('task = "guidance"\ncontrol_weight = 0.01\nmode = "M"\n')
-    cfg = control.ControlConfig.load(path, seed=3)
+    path.write_text('task = "guidance"\nlevel = 0.01\nmode = "M"\n[scene]\ndt = 0.05\n')
+    cfg = control.ControlConfig.load(path, seed=3, scene={"evaders": 3})
     assert (cfg.task, cfg.level, cfg.mode, cfg.seed) == ("guidance", 0.01, "M", 3)
+    assert cfg.scene == {"drivers": 2, "evaders": 3, "dt": 0.05}  # the task's, the file's, ours
+    assert control.ControlConfig.load(task="cartpole", level=2.0).level == 2  # as the task spells
+    path.write_text('task = "quantum"\n')
+    assert control.ControlConfig.load(path).level == 3  # the easiest
     path.write_text('epochs = "many"\n')
     with pytest.raises(ValueError, match=r"config key 'epochs' in .*c.toml: 'many' \(str\) is "
                        "not an integer"):
@@ -260,7 +263,7 @@ def test_cli_trains_resumes_and_refuses_to_overwrite(tmp_path, capsys):
     # fewer epochs than the run holds: refused, and the finished run's files stay as they were
     before = (out / "result.json").read_text()
     assert cli([*args[:3], "1", *args[4:], "--resume"]) == 2
-    assert "holds 2 epochs" in capsys.readouterr().err
+    assert "holds a run of epochs = 2; pass as much or more" in capsys.readouterr().err
     assert (out / "result.json").read_text() == before
     # the same run under another spelling of its directory or thread count still resumes
     assert cli([*args[:3], "3", *args[4:-4], str(out) + "/", *args[-3:], "--threads", "2",
@@ -285,26 +288,26 @@ def test_cli_keeps_other_files_and_tells_how_to_continue(tmp_path, capsys, monke
     theirs.mkdir()
     (theirs / "config.json").write_text('{"owner": "someone else"}')
     assert cli([*args, str(theirs)]) == 2
-    assert "holds another run or other files" in capsys.readouterr().err
+    assert "holds another command's run or other files" in capsys.readouterr().err
     assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
     done = tmp_path / "done"
     assert cli([*args, str(done)]) == 0
     (done / "checkpoint.pt").unlink()
-    assert cli([*args, str(done), "--seed", "5"]) == 2
+    assert cli([*args[:3], "2", *args[4:], str(done), "--resume"]) == 2
     assert "finished run without its checkpoint" in capsys.readouterr().err
     (tmp_path / "afile").write_text("")
     assert cli([*args, str(tmp_path / "afile")]) == 2
     assert "cannot write the run to --out" in capsys.readouterr().err
-    real = control.save_checkpoint
+    real = checkpoint.save_checkpoint
 
     def stop(*a, **kw):  # Ctrl-C right after the first checkpoint
         real(*a, **kw)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(control, "save_checkpoint", stop)
+    monkeypatch.setattr(checkpoint, "save_checkpoint", stop)
     assert cli([*args, str(tmp_path / "stopped")]) == 130
-    assert "continue with --resume --out" in capsys.readouterr().err
-    monkeypatch.setattr(control, "save_checkpoint", real)
+    assert f"and --resume (--out {tmp_path / 'stopped'})" in capsys.readouterr().err
+    monkeypatch.setattr(checkpoint, "save_checkpoint", real)
     assert cli([*args, str(tmp_path / "stopped"), "--resume"]) == 0
 
 
@@ -343,7 +346,8 @@ def test_ctrl_c_between_updates_resumes_to_the_uninterrupted_run(tmp_path, monke
     state = load_checkpoint(tmp_path / "b" / "checkpoint.pt", ("state",))["state"]
     assert (state["epoch"], state["step"], len(state["losses"])) == (1, 2, 2)
     assert cli([*args, str(tmp_path / "b"), "--resume"]) == 0
-    a, b = (load_checkpoint(tmp_path / run / "checkpoint.pt", ("net",))["net"] for run in "ab")
+    a, b = (load_checkpoint(tmp_path / run / "checkpoint.pt", ("state",))["state"]["net"]
+            for run in "ab")
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
     assert (_without_seconds(read_history(tmp_path / "a" / "history.csv"))
@@ -371,7 +375,7 @@ def test_resume_needs_a_checkpoint_and_overwrite_starts_again(tmp_path, capsys):
     theirs.mkdir()
     (theirs / "config.json").write_text('{"owner": "someone else"}')
     err = _one_line(capsys, *base, "--out", theirs, "--overwrite")
-    assert "holds another run or other files" in err
+    assert "holds another command's run or other files" in err
     assert (theirs / "config.json").read_text() == '{"owner": "someone else"}'
 
 
@@ -390,10 +394,15 @@ def test_help_lists_the_choices(capsys):
         cli(["control", "--help"])
     assert e.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    for shown in ("{cartpole,guidance,quantum}", "--mode {R,M,S,N,C}",
-                  "--clip {none,value,norm}", "--poles {1,2,3,4}", "--resume", "--overwrite",
-                  "--config FILE.toml", "--seed", "--threads", "--no-progress"):
+    for shown in ("--mode {R,M,S,N,C}", "--clip {none,value,norm}", "--poles {1,2,3,4}",
+                  "--control-weight {1.0,0.1,0.01,0.001}", "--target {3,4,5}", "--level LEVEL",
+                  "--scene KEY=VALUE", "--resume", "--overwrite", "--config FILE.toml",
+                  "--seed", "--threads", "--no-progress", "inverse-dirichlet", ",id,"):
         assert shown in text, shown
+    # every registered task, and its level flag, is offered
+    assert "{" + ",".join(control.TASKS.names()) + "}" in text
+    for name, cls in control.TASKS.items():
+        assert f"--{cls.key.replace('_', '-')} {{" in text and f"{name}: {cls.about}" in text
 
 
 def test_absurd_sizes_are_refused_before_anything_is_drawn(tmp_path, capsys, monkeypatch):
@@ -416,14 +425,18 @@ def test_absurd_sizes_are_refused_before_anything_is_drawn(tmp_path, capsys, mon
 def test_study_grids():
     from adjointsim.train.studies import stablebptt
 
+    tasks = control.TASKS.names()  # every registered task, the paper's three among them
     quick = stablebptt.cells("quick", None)
-    assert len(quick) == 3 * 2 * 4 and len({c["id"] for c in quick}) == len(quick)
+    assert len(quick) == len(tasks) * 2 * 4 and len({c["id"] for c in quick}) == len(quick)
     hardest = stablebptt.cells("hardest", None)
     assert {(c["task"], c["level"]) for c in hardest} == {
+        (t, control.TASKS.get(t).levels[-1]) for t in tasks} >= {
         ("cartpole", 4), ("guidance", 0.001), ("quantum", 5)}
-    assert {c["mode"] for c in hardest} == {"R", "M", "C"} and len(hardest) == 27
+    assert {c["mode"] for c in hardest} == {"R", "M", "C"} and len(hardest) == len(tasks) * 9
+    assert {c["epochs"] for c in hardest if c["task"] == "quantum"} == {20}  # a costly task
+    assert {c["epochs"] for c in hardest if c["task"] == "cartpole"} == {60}
     full = stablebptt.cells("full", 1)
-    assert len(full) == (4 + 4 + 3) * 4 * 3
+    assert len(full) == sum(len(control.TASKS.get(t).levels) for t in tasks) * 4 * 3
     assert {(c["train"], c["test"], c["batch"]) for c in full} == {(256, 256, 8)}
 
 
@@ -442,3 +455,40 @@ def test_tiny_study_end_to_end(tmp_path):
     # the summary: R and C with their ratios to the untrained loss, C against R on 1 seed
     assert re.search(r"cartpole +1 none +\S+ \[\d\.\d{3}\] +\S+ \[\d\.\d{3}\] +[01]/1 +-\n", text)
     json.loads((tmp_path / "rows.json").read_text())
+
+
+def test_a_diverged_run_says_so_and_claims_no_rollout(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert cli([str(a) for a in ["control", "cartpole", "--lr", "1e8", "--epochs", "2", *SMALL,
+                                 "--out", out, "--json", tmp_path / "r.json"]]) == 1
+    said = capsys.readouterr().out
+    assert "diverged" in said and "rollout.png" not in said and "test_loss.png" in said
+    result = json.loads((out / "result.json").read_text())
+    assert result["diverged"] is True and result["test_loss"] is None
+    assert not (out / "rollout.png").exists() and (out / "test_loss.png").exists()
+    assert json.loads((tmp_path / "r.json").read_text())["diverged"] is True
+
+
+def test_weighting_alias_and_scene_are_recorded(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["control", "guidance", "--mode", "R", "--weighting", "id", "--control-weight",
+            "0.01", "--scene", "dt=0.05", "--epochs", "1", *SMALL, "--out", out]
+    assert cli([str(a) for a in args]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["weighting"] == "inverse-dirichlet" and config["level"] == 0.01
+    assert config["scene"] == {"drivers": 2, "evaders": 4, "dt": 0.05}
+    result = json.loads((out / "result.json").read_text())
+    assert set(result["weights"]) == {"tracking", "control"} and result["control_weight"] == 0.01
+    # the recorded run resumes under the same spellings: finished, returned as it is
+    assert cli([str(a) for a in [*args, "--resume"]]) == 0
+    # the solver checks the scene, naming the key; the task's level is not a scene key
+    err = _one_line(capsys, "control", "guidance", "--scene", "dt=-1", "--out", tmp_path / "x")
+    assert "config key 'scene': guidance: dt must be a finite number > 0, got -1" in err
+    err = _one_line(capsys, "control", "cartpole", "--scene", "masses=2", "--out", tmp_path / "x")
+    assert "scene key 'masses': cartpole takes dt, gravity, pole_mass" in err
+    err = _one_line(capsys, "control", "cartpole", "--scene", "poles=2", "--out", tmp_path / "x")
+    assert "'poles' is the cartpole task's level; pass --poles" in err
+    err = _one_line(capsys, "control", "cartpole", "--level", "2", "--poles", "3", "--out",
+                    tmp_path / "x")
+    assert "--level and --poles" in err
+    assert not (tmp_path / "x").exists()

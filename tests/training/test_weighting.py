@@ -442,9 +442,9 @@ def _one_update(cfg, task, net, x0, weighting):
     from adjointsim.train import control
 
     params = list(net.parameters())
-    state = control._fresh_epoch()
-    control._update(cfg, task, net, SimpleNamespace(step=lambda: None), params, x0, state,
-                    weighting, 0)
+    state = control.fresh_epoch()
+    control.minibatch_update(cfg, task, net, SimpleNamespace(step=lambda: None), params, x0,
+                             state, weighting, 0)
     return torch.cat([p.grad.reshape(-1) for p in params]), state
 
 

@@ -5,17 +5,18 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
 ``test_loss`` (final), the final training loss, the per-epoch test losses and the time. Sizes:
 
 * ``tiny``: two cells of a few seconds (the end-to-end test);
-* ``quick``: every task at its easiest and hardest level, modes R/M/S/C, no clipping, one seed,
-  32 + 32 initial states, a few epochs (minutes on 2 cores);
+* ``quick``: every registered task (:data:`adjointsim.train.tasks.TASKS`) at its easiest and
+  hardest level, modes R/M/S/C, no clipping, one seed, 32 + 32 initial states, a few epochs
+  (minutes on 2 cores);
 * ``hardest``: the finding of the paper: the hardest level of each task (4 poles, target 5,
   control weight 0.001), modes R/M/C, no clipping, 3 seeds, 64 + 64 initial states, 60 epochs
-  (20 for the quantum task, whose update costs several times a cart-pole one);
+  (20 for a task whose update costs several times a cart-pole one, ``Task.costly``: quantum);
 * ``easiest``: the paper's other finding, that every mode solves the easiest level (1 pole,
   target 3, control weight 1): modes R/M/S/C, otherwise as ``hardest``; the table gives each
   final test loss over the untrained controller's (c = 0);
 * ``full``: the paper's settings (Adam 1e-3, 256 + 256 initial states, batch 8), every level,
-  modes R/M/S/C, clipping none/value/norm, 3 seeds; epochs per task sized to about an hour
-  per task on 2 cores (the paper runs 1000);
+  modes R/M/S/C, clipping none/value/norm, 3 seeds; epochs sized to about an hour per task on
+  2 cores (the paper runs 1000);
 * ``paper``: the paper's budget at the hardest cart-pole level (4 poles): 1000 epochs of the
   paper's settings, modes R, M and C and R with norm clipping, 3 seeds;
 * ``paper-guidance``: the same for the guidance task at control weight 0.001, at 300 epochs.
@@ -35,49 +36,39 @@ from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import plot_history, read_history
 from adjointsim.runner import Study, register_study
 
-from ..control import (
-    TASKS,
-    ControlConfig,
-    build_net,
-    evaluate,
-    get_task,
-    initial_states,
-    train_controller,
-)
+from ..control import ControlConfig, build_net, evaluate, initial_states, train_controller
 from ..ensemble import train_ensemble
+from ..tasks import TASKS
 from ..unroll import CLIPS, FLOWS
 
 _MODES = ("R", "M", "S", "C")
-#: per size: levels per task ("ends" = easiest and hardest), modes, clips, seeds, samples, epochs
+#: per size: levels per task ("ends" = easiest and hardest, or the levels of named tasks),
+#: modes, clips, seeds, samples, epochs (of a task, and of a costly one)
 SIZES = {
     "tiny": {"tasks": {"cartpole": (1,)}, "modes": ("R", "C"), "clips": ("none",), "seeds": 1,
-             "train": 8, "test": 8, "batch": 4, "epochs": {"cartpole": 1}},
+             "train": 8, "test": 8, "batch": 4, "epochs": (1, 1)},
     "quick": {"tasks": "ends", "modes": _MODES, "clips": ("none",), "seeds": 1,
-              "train": 32, "test": 32, "batch": 8,
-              "epochs": {"cartpole": 4, "guidance": 4, "quantum": 2}},
+              "train": 32, "test": 32, "batch": 8, "epochs": (4, 2)},
     "hardest": {"tasks": "hardest", "modes": ("R", "M", "C"), "clips": ("none",), "seeds": 3,
-                "train": 64, "test": 64, "batch": 8,
-                "epochs": {"cartpole": 60, "guidance": 60, "quantum": 20}},
+                "train": 64, "test": 64, "batch": 8, "epochs": (60, 20)},
     # the paper's second finding: at the easiest level every mode solves the task
     "easiest": {"tasks": "easiest", "modes": _MODES, "clips": ("none",), "seeds": 3,
-                "train": 64, "test": 64, "batch": 8,
-                "epochs": {"cartpole": 60, "guidance": 60, "quantum": 20}},
+                "train": 64, "test": 64, "batch": 8, "epochs": (60, 20)},
     "full": {"tasks": "all", "modes": _MODES, "clips": CLIPS, "seeds": 3,
-             "train": 256, "test": 256, "batch": 8,
-             "epochs": {"cartpole": 16, "guidance": 16, "quantum": 5}},
+             "train": 256, "test": 256, "batch": 8, "epochs": (16, 5)},
     "paper": {"tasks": {"cartpole": (4,)}, "modes": ("R", "M", "C"), "clips": ("none",),
               "extra": (("R", "norm"),), "seeds": 3, "train": 256, "test": 256, "batch": 8,
-              "epochs": {"cartpole": 1000}},
+              "epochs": (1000, 1000)},
     # the guidance task at its hardest control weight, as many epochs as fit in half an hour
     # of 2 cores (the paper: 1000)
     "paper-guidance": {"tasks": {"guidance": (0.001,)}, "modes": ("R", "M", "C"),
                        "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
-                       "test": 256, "batch": 8, "epochs": {"guidance": 300}},
+                       "test": 256, "batch": 8, "epochs": (300, 300)},
 }
 
 
 def _levels(spec, task: str) -> tuple:
-    levels = TASKS[task].levels
+    levels = TASKS.get(task).levels
     if isinstance(spec, dict):
         return spec.get(task, ())
     # "all" puts the hardest and easiest levels first: they hold the paper's findings, so a
@@ -89,7 +80,7 @@ def _levels(spec, task: str) -> tuple:
 def cells(size: str, seeds: int | None) -> list[dict]:
     s = SIZES[size]
     out = []
-    for task in TASKS:
+    for task in TASKS.names():
         for level in _levels(s["tasks"], task):
             variants = [(m, c) for m in s["modes"] for c in s["clips"]] + list(s.get("extra", ()))
             for mode, clip in variants:
@@ -97,7 +88,8 @@ def cells(size: str, seeds: int | None) -> list[dict]:
                     out.append({
                         "id": f"{task}-{level}-{mode}-{clip}-s{seed}",
                         "task": task, "level": level, "mode": mode, "clip": clip,
-                        "seed": seed, "epochs": s["epochs"][task], "train": s["train"],
+                        "seed": seed, "epochs": s["epochs"][TASKS.get(task).costly],
+                        "train": s["train"],
                         "test": s["test"], "batch": s["batch"],
                     })
     # level by level across tasks (stable: task order kept within a level)
@@ -107,11 +99,10 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 def _config(cell: dict, run_dir: Path) -> ControlConfig:
     cfg = ControlConfig(
-        task=cell["task"], mode=cell["mode"], clip=cell["clip"], seed=cell["seed"],
-        epochs=cell["epochs"], train=cell["train"], test=cell["test"], batch=cell["batch"],
-        out=str(run_dir), dtype="float32", threads=1,
+        task=cell["task"], mode=cell["mode"], clip=cell["clip"], level=cell["level"],
+        seed=cell["seed"], epochs=cell["epochs"], train=cell["train"], test=cell["test"],
+        batch=cell["batch"], out=str(run_dir), dtype="float32", threads=1,
     )
-    setattr(cfg, TASKS[cell["task"]].knob, cell["level"])
     cfg.validate()
     return cfg
 
@@ -133,7 +124,7 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
 def _row(cell: dict, cfg: ControlConfig, result: dict, run_dir: Path) -> dict:
     history = read_history(Path(run_dir) / "history.csv")
     # the untrained controller outputs c = 0 (zero last layer): the uncontrolled loss
-    task = get_task(cfg.task, cfg.level)
+    task = cfg.make_task()
     untrained = evaluate(task, build_net(cfg, task), initial_states(cfg, task)[1])
     return {**cell, "test_loss": result["test_loss"], "train_loss": result["train_loss"],
             "untrained_test_loss": untrained,
@@ -156,7 +147,7 @@ def table(rows: list[dict]) -> str:
              "final test loss (mean ± std)" + ("   / untrained" if ratios else "")]
     order = {m: i for i, m in enumerate(FLOWS)}
     for (task, level, mode, clip), v in sorted(
-            groups.items(), key=lambda kv: (list(TASKS).index(kv[0][0]), str(kv[0][1]),
+            groups.items(), key=lambda kv: (TASKS.names().index(kv[0][0]), str(kv[0][1]),
                                             kv[0][3], order[kv[0][2]])):
         v = np.array(v, dtype=float)
         ratio = ratios.get((task, level, mode, clip))
@@ -171,8 +162,8 @@ def summary(rows: list[dict]) -> str:
     in brackets, its mean ratio to the untrained loss; then on how many seeds C ends below R
     and below M (paired by seed)."""
     cell = {(r["task"], r["level"], r["clip"], r["mode"], r["seed"]): r for r in rows}
-    keys = sorted({k[:3] for k in cell}, key=lambda k: (list(TASKS).index(k[0]),
-                                                        TASKS[k[0]].levels.index(k[1]), k[2]))
+    keys = sorted({k[:3] for k in cell}, key=lambda k: (TASKS.names().index(k[0]),
+                                                        TASKS.get(k[0]).levels.index(k[1]), k[2]))
     modes = [m for m in FLOWS if any(k[3] == m for k in cell)]
     lines = [f"{'task':<9} {'level':>6} {'clip':<5} "
              + " ".join(f"{m:<17}" for m in modes) + "  C<R   C<M"]
@@ -206,9 +197,9 @@ def report(rows: list[dict], out: Path) -> str:
     out = Path(out)
     text = summary(rows) + "\n\n" + table(rows)
     write_text(out / "table.txt", text + "\n")
-    for task in TASKS:
+    for task in TASKS.names():
         mine = [r for r in rows if r["task"] == task]
-        levels = sorted({r["level"] for r in mine}, key=TASKS[task].levels.index)
+        levels = sorted({r["level"] for r in mine}, key=TASKS.get(task).levels.index)
         for level in levels:
             name = f"stablebptt-{task}" + (f"-{level}" if len(levels) > 1 else "")
             _plot_curves([r for r in mine if r["level"] == level], out / f"{name}.png")
@@ -236,8 +227,8 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
         curves[f"{mode}{clip_txt} (n={len(hs)})"] = [
             {"epoch": e + 1, "test_loss": float(v)} for e, v in enumerate(mean)]
     plot_history(path, curves, "epoch", "test_loss", "epoch", "test loss",
-                 title=f"{task}, {TASKS[task].knob.replace('_', ' ')} {level}: test loss, mean "
-                 "over seeds")
+                 title=f"{task}, {TASKS.get(task).key.replace('_', ' ')} {level}: test loss, "
+                 "mean over seeds")
 
 
 def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
@@ -260,7 +251,7 @@ def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
             ax.errorbar(x, [np.mean(ratio[i]) for i in x], yerr=[np.std(ratio[i]) for i in x],
                         marker="o", capsize=3, label=mode, color=_COLORS[mode])
         ax.set_xticks(range(len(levels)), [str(v) for v in levels])
-        ax.set_xlabel(TASKS[task].knob.replace("_", " "))
+        ax.set_xlabel(TASKS.get(task).key.replace("_", " "))
         ax.set_yscale("log")
         ax.set_title(f"clip {clip}", fontsize=9)
     axes[0][0].set_ylabel("final test loss / untrained")
