@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import validate
 from ..stepper import Choice, Range
-from .spectral1d import ETDRKScene1D, _register_orders
+from .spectral1d import ETDRKScene1D, register_orders
 
 
 class KuramotoSivashinskyETDRK(ETDRKScene1D):
@@ -71,4 +71,4 @@ class KuramotoSivashinskyETDRK(ETDRKScene1D):
         return (np.cos(x / 16) * (1 + np.sin(x / 16)))[None, None, :].astype(dtype)
 
 
-KS = _register_orders(KuramotoSivashinskyETDRK, "ks1d", globals())
+KS = register_orders(KuramotoSivashinskyETDRK, "ks1d", globals())

@@ -642,7 +642,7 @@ class AdvectionDiffusionETDRK(ETDRKScene1D):
         )
 
 
-def _register_orders(base: type, prefix: str, namespace: dict) -> dict[int, type]:
+def register_orders(base: type, prefix: str, namespace: dict) -> dict[int, type]:
     """Register ``{prefix}-etdrk1`` .. ``-etdrk4``, one subclass of ``base`` per order, as
     module attributes ``{base name}1`` .. ``4`` of ``namespace`` (so they pickle)."""
     classes = {}
@@ -657,5 +657,5 @@ def _register_orders(base: type, prefix: str, namespace: dict) -> dict[int, type
     return classes
 
 
-BURGERS = _register_orders(BurgersETDRK, "burgers1d", globals())
-ADVECTION_DIFFUSION = _register_orders(AdvectionDiffusionETDRK, "advdiff1d", globals())
+BURGERS = register_orders(BurgersETDRK, "burgers1d", globals())
+ADVECTION_DIFFUSION = register_orders(AdvectionDiffusionETDRK, "advdiff1d", globals())
