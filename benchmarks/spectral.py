@@ -11,7 +11,7 @@ KS ETDRK4, N = 128, L = 64, Δt = 0.25, smooth random initial states (max |u| = 
   (:class:`adjointsim.bench.work_precision.NumpyETDRK4`), PyTorch eager (torch.fft,
   ``torch_spectral.TorchKS`` under no_grad), exponax (``exponax_peer``: jit, lax.scan, vmap), and
   the lower bound: the step's 8 real FFTs alone (numpy.fft in a numba loop via rocket-fft,
-  ``ks_speed._numpy_ffts``);
+  ``ks_speed.numpy_ffts``);
   forward + gradient of the loss ½ Σ u_200² (200 steps): ours = ``rollout`` + ``vjp`` (the
   cotangent u_200 needs the forward first), PyTorch autograd, jax.value_and_grad through exponax;
   adjoint/forward = (vjp − rollout)/rollout, the adjoint sweep's cost in forward passes. Also
@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import exponax_peer  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from ks_speed import _numpy_ffts  # noqa: E402
+from ks_speed import numpy_ffts  # noqa: E402
 from torch_spectral import TorchKS, forward_and_gradient  # noqa: E402
 
 from adjointsim.bench.work_precision import (  # noqa: E402
@@ -117,7 +117,7 @@ def ks_batch(batch: int, repeats: int, with_exponax: bool) -> dict:
     torch_last, torch_grad = forward_and_gradient(model, u0, KS_STEPS)
     peers = {
         # One call runs the 8 FFTs of FFT_LOOPS steps.
-        "ffts": {"forward": lambda: _numpy_ffts(rows, FFT_LOOPS), "steps": FFT_LOOPS},
+        "ffts": {"forward": lambda: numpy_ffts(rows, FFT_LOOPS), "steps": FFT_LOOPS},
         "numpy": {"forward": lambda: numpy_ks.rollout(u0, KS_STEPS),
                   "last": numpy_ks.rollout(u0, KS_STEPS)},
         "torch": {"forward": torch_forward,
