@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -180,6 +181,8 @@ class PinnRun(engine.Problem):
                             *kind.coefficients, "lr", "skipped", "seconds"),
             # every weight refresh: the step, each λ and each term's gradient spread
             "weights.csv": ("step", *terms, *(f"spread/{t}" for t in terms))}
+        # a finished run continues to more epochs, unless its terms join at fractions of them
+        self.EXTENDABLE = () if kind.phased else ("epochs",)
 
     def describe(self) -> str:
         return f"{self.problem.title} {self.config.weighting} seed {self.config.seed}"
@@ -267,6 +270,17 @@ class PinnRun(engine.Problem):
 
     def postfix(self) -> dict[str, Any]:
         return {"rel_l2": f"{self.rows[-1]['rel_l2']:.2e}"} if self.rows else {}
+
+    def extend(self, recorded: dict) -> None:
+        """A finished run continued to more epochs, as the longer run would have trained: its
+        lr steps, and neither the final evaluation's phase record nor its history row (the
+        next epoch logs that row again where it is due)."""
+        epoch = self.state["epoch"]
+        self.sched.milestones = Counter(self.problem.milestones(self.config.epochs))
+        if self.state["phases"] and self.state["phases"][-1]["epoch"] == epoch:
+            self.state["phases"].pop()
+        if self.rows and self.rows[-1]["epoch"] == epoch and epoch % self.config.log_every:
+            self.rows.pop()
 
     def finish(self) -> dict:
         state = self.state

@@ -74,8 +74,10 @@ def test_run_writes_history_plots_and_refuses_to_overwrite(tmp_path):
         train_run(_cfg(weighting="id"), out, progress=False)
     assert train_run(_cfg(weighting="id"), out, resume=True, progress=False) == result
     # resuming it under another configuration does not pass its result off as the new one's
-    with pytest.raises(RunExists, match="differs in epochs"):
+    with pytest.raises(RunExists, match="holds a run of epochs = 12; pass as much or more"):
         train_run(_cfg(weighting="id", epochs=3), out, resume=True, progress=False)
+    with pytest.raises(RunExists, match="differs in seed"):
+        train_run(_cfg(weighting="id", seed=3), out, resume=True, progress=False)
 
 
 def test_ctrl_c_inside_an_update_resumes_without_repeating_it(tmp_path, monkeypatch):
@@ -210,6 +212,31 @@ def test_a_run_stopped_after_its_last_checkpoint_resumes_to_the_same_result(tmp_
     assert rows[0] == rows[1]
 
 
+def test_a_finished_run_continues_to_more_epochs_as_the_longer_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(Poisson, "lr_steps", (5, 9))  # lr steps inside the tiny runs
+    straight = train_run(_cfg(epochs=12, log_every=4), tmp_path / "a", progress=False,
+                         plot=False)
+    train_run(_cfg(epochs=7, log_every=4), tmp_path / "b", progress=False, plot=False)
+    with pytest.raises(RunExists, match="continue it to more with --resume"):
+        train_run(_cfg(epochs=12, log_every=4), tmp_path / "b", progress=False)
+    with pytest.raises(RunExists, match="epochs = 7; pass as much or more"):
+        train_run(_cfg(epochs=6, log_every=4), tmp_path / "b", resume=True, progress=False)
+    longer = train_run(_cfg(epochs=12, log_every=4), tmp_path / "b", resume=True,
+                       progress=False, plot=False)
+    assert {k: v for k, v in longer.items() if k != "seconds"} == \
+        {k: v for k, v in straight.items() if k != "seconds"}
+    assert longer["phases"][0]["epoch"] == 12
+    for name in ("history.csv", "weights.csv"):
+        rows = [[{k: v for k, v in h.items() if k != "seconds"}
+                 for h in read_history(tmp_path / d / name)] for d in ("a", "b")]
+        assert rows[0] == rows[1], name
+    # terms that join at fractions of the epochs: a longer run is another run
+    seq = {"problem": "sequential", "epochs": 6}
+    train_run(_cfg(**seq), tmp_path / "s", progress=False, plot=False)
+    with pytest.raises(RunExists, match="differs in epochs"):
+        train_run(_cfg(**{**seq, "epochs": 9}), tmp_path / "s", resume=True, progress=False)
+
+
 def test_out_of_something_else_is_refused(tmp_path, capsys, monkeypatch):
     (tmp_path / "theirs").mkdir()
     (tmp_path / "theirs" / "config.json").write_text('{"precious": true}')
@@ -325,7 +352,7 @@ def test_overwrite_discards_the_run_and_starts_again(tmp_path, capsys):
     assert cli(args) == 0
     first = json.loads((tmp_path / "r" / "result.json").read_text())
     assert cli([*args, "--epochs", "6"]) == 2
-    assert "holds a run of another configuration (differs in epochs)" in \
+    assert "finished run (epochs = 4); continue it to more with --resume" in \
         capsys.readouterr().err
     assert cli([*args, "--epochs", "6", "--overwrite"]) == 0
     again = json.loads((tmp_path / "r" / "result.json").read_text())
