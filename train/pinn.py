@@ -327,7 +327,8 @@ def train_run(cfg: PinnConfig, out: str | Path, resume: bool = False, progress: 
     """Train ``cfg`` in ``out`` (see the module doc) on ``cfg.threads`` torch and solver threads;
     returns the result (also result.json). The run directory follows the engine's rule: a run
     already in ``out`` is continued with ``resume`` (a finished one's result is returned as it
-    is), discarded with ``overwrite``, and otherwise never overwritten."""
+    is, or the run continued when ``epochs`` was raised), discarded with ``overwrite``, and
+    otherwise never overwritten."""
     cfg.validate()
     return engine.run(PinnRun(cfg, out, plots=plot), resume=resume, overwrite=overwrite,
                       progress=progress)
