@@ -158,6 +158,21 @@ def test_stepper_members_equal_their_separate_runs(tiny, tmp_path, monkeypatch, 
         assert 0 < sum(s["skipped"] > 0 for s in states) < len(states)
 
 
+def test_a_stopped_stepper_ensemble_resumes_to_the_uninterrupted_one(tiny, tmp_path):
+    """Stopped by max_iterations (saved there, not at a periodic checkpoint), then resumed:
+    every member ends with the history and weights of the uninterrupted ensemble, to the bit."""
+    train_ensemble([_stepper(tiny, tmp_path, "a", s, "WIG") for s in (0, 2)], progress=False)
+    cut = [_stepper(tiny, tmp_path, "b", s, "WIG", max_iterations=7) for s in (0, 2)]
+    assert train_ensemble(cut, progress=False)
+    assert not any((tmp_path / "b" / f"s{s}" / "result.json").exists() for s in (0, 2))
+    train_ensemble([_stepper(tiny, tmp_path, "b", s, "WIG") for s in (0, 2)], resume=True,
+                   progress=False)
+    for s in (0, 2):
+        (wa, a), (wb, b) = (_stepper_checkpoints(tmp_path, w, s) for w in ("a", "b"))
+        assert a["history"] == b["history"] and len(a["history"]) >= 20
+        assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
 def test_train_seeds_writes_one_run_per_seed_equal_to_the_ensemble(tiny, tmp_path, capsys):
     import json
 

@@ -571,3 +571,61 @@ def test_training_gives_torch_and_the_solvers_the_threads_it_is_given(tiny, tmp_
         parallel.set_threads(None)
         torch.set_num_threads(before)
     assert len(seen) == 2 and set(seen) == {(2, 2)}
+
+
+def test_a_finished_run_has_its_result_and_is_returned_as_it_is(tiny, tmp_path):
+    import json
+
+    from adjointsim.nets import parameter_count
+    from adjointsim.run import read_history
+
+    out = tmp_path / "r"
+    model = train(_config(tiny, out, rollback=2.0, checkpoint_every=100), progress=False)
+    result = json.loads((out / "result.json").read_text())
+    history = read_history(out / "history.csv")
+    assert result["iterations"] == len(history) == 198 and result["rollbacks"] == 0
+    assert result["skipped"] == sum(h["skipped"] for h in history)
+    assert result["final_loss"] == history[-1]["loss"]
+    assert result["parameters"] == parameter_count(model.net)
+    assert result["rollback"] == 2.0 and result["scene"] == get_problem("ks").scene
+    # --resume returns it as it is: nothing trained, nothing written, the same weights
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    again = train(_config(tiny, out, rollback=2.0, checkpoint_every=100), resume=True,
+                  progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == stamps
+    for a, b in zip(model.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(RunExists, match="finished run"):
+        train(_config(tiny, out, rollback=2.0, checkpoint_every=100), progress=False)
+
+
+def test_the_scene_comes_from_the_dataset(tmp_path, capsys):
+    """`adjointsim data --scene` records the scene in the dataset; train builds its solver from
+    it, records it in config.json, and refuses a scene key that disagrees, naming the
+    dataset's."""
+    import json
+
+    from adjointsim.cli import main
+
+    data = tmp_path / "n64.h5"
+    assert main(["data", "ks", "--size", "tiny", "--scene", "n=64", "--out", str(data),
+                 "--no-progress"]) == 0
+    dataset = datamod.load(data)
+    assert dataset.problem.scene == {"n": 64, "dt": 1.0, "substeps": 2}
+    assert dataset.splits["train"].trajectories.shape[-1] == 64
+    model = train(_config(data, tmp_path / "r", max_iterations=1), progress=False)
+    assert model.solver(1.0).grid_shape == (64,)
+    assert json.loads((tmp_path / "r" / "config.json").read_text())["scene"]["n"] == 64
+    with pytest.raises(UserError, match=r"'scene': n = 48 conflicts with the scene of the "
+                       r"dataset .*n64.h5 \(n = 64\)"):
+        train(_config(data, tmp_path / "s", scene={"n": 48}), progress=False)
+    assert not (tmp_path / "s").exists()
+    # the solver's own validation, one line naming the key and what it accepts
+    flags = ["--size", "tiny", "--out", str(tmp_path / "x.h5"), "--no-progress"]
+    assert main(["data", "ks", *flags, "--scene", "n=31"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "n must be an even integer" in err and len(err.splitlines()) == 1
+    assert main(["data", "ks", *flags, "--scene", "viscosity=1"]) == 2
+    assert "scene key 'viscosity' is not one of the ks problem's (n, dt, substeps)" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "x.h5").exists()
