@@ -9,7 +9,7 @@ started from a developed state. Per step, median / minimum over the repeats of:
   fwd+adj        vjp(u0, steps, ū): the forward sweep records the stage fields, the adjoint
                  reads them (the default path)
   fwd+adj (rec)  forward + vjp(..., trajectory=...): the adjoint recomputes the stages
-  numpy          the vectorised NumPy forward of benchmarks/numpy_ref/spectral2d.py
+  numpy          the vectorised NumPy forward of tests/references/spectral2d.py
 then (fwd+adj) / forward, the gradient's cost in forwards. When exponax is installed (the
 ``peers`` extra), its exact twin of each scene (benchmarks/exponax_peer.py: JAX/XLA jit on one
 CPU thread, from the same state, compilation not timed) is measured in the same run: its
@@ -33,13 +33,15 @@ from pathlib import Path
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# the NumPy references live with the tests (tests/references), imported from the repository root
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import exponax_peer  # noqa: E402
 import numpy as np  # noqa: E402
-from numpy_ref.spectral2d import navier_stokes as numpy_rollout  # noqa: E402
 
 import adjointsim.solvers.navier_stokes as ns  # noqa: E402
 from adjointsim import get, parallel  # noqa: E402
+from tests.references.spectral2d import navier_stokes as numpy_rollout  # noqa: E402
 
 
 def timings(fn, repeats: int, clock) -> tuple[float, float]:

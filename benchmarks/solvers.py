@@ -19,12 +19,13 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# the NumPy references live with the tests (tests/references), imported from the repository root
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np  # noqa: E402
-from numpy_ref import all_rollouts  # noqa: E402
 
 import adjointsim  # noqa: E402
+from tests.references import all_rollouts  # noqa: E402
 
 SIZES = {1: 256, 2: 128}
 

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-# The NumPy references in benchmarks/numpy_ref are what several solvers are tested against.
+# Some tests run the benchmark scripts (benchmarks/threads.py, benchmarks/torch_spectral.py),
+# which import one another by their bare names.
 sys.path.insert(0, str(ROOT / "benchmarks"))
 # Two test workers share the machine's cores: one solver thread each unless a test says more.
 os.environ.setdefault("ADJOINTSIM_THREADS", "1")

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from numpy_ref import advection as numpy_reference
 
 from adjointsim.check import check_stepper
 from adjointsim.solvers.lax_wendroff import LaxWendroffAdvection1D, LaxWendroffAdvection2D
 from adjointsim.solvers.upwind import UpwindAdvection1D, UpwindAdvection2D
+from tests.references import advection as numpy_reference
 
 CLASSES = [UpwindAdvection1D, UpwindAdvection2D, LaxWendroffAdvection1D, LaxWendroffAdvection2D]
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from numpy_ref import burgers_fv as numpy_reference
 
 from adjointsim.check import check_stepper
 from adjointsim.solvers.burgers_fv import BurgersRusanov1D, BurgersRusanov2D
+from tests.references import burgers_fv as numpy_reference
 
 
 def _cole_hopf(s: np.ndarray, t: float, nu: float, a: float = 1.1) -> np.ndarray:

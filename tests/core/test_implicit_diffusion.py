@@ -3,11 +3,11 @@
 
 import numpy as np
 import pytest
-from numpy_ref.implicit_diffusion import ROLLOUTS  # noqa: E402
 
 import adjointsim.solvers.implicit_diffusion as implicit
 from adjointsim.check import check_stepper
 from adjointsim.grid import nodes
+from tests.references.implicit_diffusion import ROLLOUTS
 
 CLASSES = [
     implicit.BackwardEulerDiffusion1D,

@@ -5,7 +5,6 @@ input validation, agreement with the NumPy reference."""
 
 import numpy as np
 import pytest
-from numpy_ref.spectral2d import ROLLOUTS  # noqa: E402
 
 import adjointsim.solvers.advection_diffusion2d  # noqa: F401
 import adjointsim.solvers.navier_stokes  # noqa: F401
@@ -14,6 +13,7 @@ from adjointsim.check import check_stepper
 from adjointsim.solvers.advection_diffusion2d import AdvectionDiffusion2D
 from adjointsim.solvers.navier_stokes import NavierStokes2D
 from adjointsim.spectral.fft2d import random_smooth_field
+from tests.references.spectral2d import ROLLOUTS
 
 ORDERS = (1, 2, 3, 4)
 

@@ -7,7 +7,7 @@ import adjointsim.solvers.poisson  # noqa: F401  (registers the solver)
 from adjointsim.check import check_stepper
 from adjointsim.grid import nodes
 from adjointsim.solvers.poisson import Poisson2D
-from benchmarks.numpy_ref.poisson import ROLLOUTS
+from tests.references.poisson import ROLLOUTS
 
 
 def grid(s: Poisson2D) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ import pytest
 import adjointsim.solvers.schrodinger  # noqa: F401  (registers the solver)
 from adjointsim.check import check_stepper
 from adjointsim.solvers.schrodinger import SchrodingerCN
-from benchmarks.numpy_ref.schrodinger import ROLLOUTS
+from tests.references.schrodinger import ROLLOUTS
 
 
 def as_complex(u: np.ndarray) -> np.ndarray:

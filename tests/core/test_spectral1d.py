@@ -4,12 +4,12 @@ scenes, invariants, presets, bad input and agreement with the NumPy reference.""
 
 import numpy as np
 import pytest
-from numpy_ref.spectral1d import ROLLOUTS  # noqa: E402
 
 import adjointsim
 import adjointsim.solvers.kuramoto_sivashinsky as ks
 import adjointsim.solvers.spectral1d as sp
 from adjointsim.check import check_stepper
+from tests.references.spectral1d import ROLLOUTS
 
 N = 32
 X = 2 * np.pi * np.arange(N) / N
