@@ -42,13 +42,13 @@ def test_train_refuses_an_existing_run_unless_resume_or_overwrite(tiny, tmp_path
     ckpt = out / "checkpoint.pt"
     stamp, before = ckpt.stat().st_mtime_ns, ckpt.read_bytes()
     err = _one_line_error(capsys, *args, command="train")
-    assert "finished run" in err and "--resume" in err and "--out" in err and "--overwrite" in err
+    assert "finished run" in err and "--out" in err and "--overwrite" in err
     assert ckpt.stat().st_mtime_ns == stamp and ckpt.read_bytes() == before
     # An unfinished run gets the same refusal.
     cut = tmp_path / "cut"
     assert _run(capsys, "train", "--data", tiny, "--out", cut, *TINY, "--max-iterations", 1)[0] == 0
     err = _one_line_error(capsys, "train", "--data", tiny, "--out", cut, *TINY, command="train")
-    assert "unfinished run (stopped after 1 iterations)" in err
+    assert "unfinished run; continue it with --resume" in err
     # --overwrite starts again; --resume with --overwrite is refused in one line.
     assert _run(capsys, *args, "--overwrite")[0] == 0
     assert ckpt.read_bytes() != before or ckpt.stat().st_mtime_ns != stamp
@@ -170,11 +170,14 @@ def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path,
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(adjointsim.train.trainer, "train", interrupted)
+    monkeypatch.undo()
+    monkeypatch.setattr(adjointsim.train.trainer.StepperRun, "update", interrupted)
     code, _, err = _run(capsys, "train", "--data", tiny, "--out", tmp_path / "r", *TINY)
     assert code == 130
-    # This stand-in stops before writing anything: the real loop saves first (test_train).
-    assert err.startswith("adjointsim train: interrupted; stopped before the first checkpoint")
+    # Ctrl-C at the first update: the engine saves the checkpoint first
+    assert err.splitlines()[-1].endswith("adjointsim train: interrupted; the checkpoint is saved; "
+                                         f"continue with the same command and --resume (--out "
+                                         f"{tmp_path / 'r'})")
 
 
 def test_eval_missing_directory_and_bad_horizons(tiny, tmp_path, capsys):
