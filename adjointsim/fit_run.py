@@ -9,13 +9,13 @@ Observation file layout (``--observations FILE.h5``)::
                                               starting guess when it is fitted (default zero)
     /controls   float (n, B, *control_shape)  optional: the controls, fixed or starting guess
     /truth/u0, /truth/controls                optional: the true values, for error reports
-    attrs: scene   the registry name (must match SCENE)
+    attrs: scene   the registry name of the solver (must match SOLVER)
            config  JSON of the scene's constructor keywords, e.g. {"n": 128, "nu": 0.003}
            params  optional JSON {parameter: value}: fixed values or starting guesses
            truth_params  optional JSON {parameter: value}: the true values, for error reports
            n       optional rollout length (default: the last observed step)
 
-A run directory (``--out``, default ``runs/fit-DEMO`` or ``runs/fit-SCENE``) receives
+A run directory (``--out``, default ``runs/fit-DEMO`` or ``runs/fit-SOLVER``) receives
 ``config.json`` (the fit's configuration), ``history.csv`` (per iteration: misfit,
 regularisation, objective, gradient norm, evaluations, seconds, CPU seconds), ``fitted.h5``
 (fitted u0, controls and the predicted observed states, same layout), the plots ``fit.png``
@@ -25,14 +25,15 @@ it, optimiser message, the parameters on a bound at the start and at the end). A
 written atomically. A start outside its bounds is refused (give ``--start`` or wider
 ``--bounds``); a demo's own bounds apply to the parameters it fits.
 
-Every input is checked before anything is written. A fit takes seconds, so it keeps no
-checkpoint: ``--resume`` returns a finished fit's result as it is and starts an unfinished
-(interrupted) one again from its beginning; ``--overwrite`` discards the fit in ``--out`` and
-runs it again.
+Every input is checked before anything is written. The directory follows the run engine's rule
+(:mod:`adjointsim.engine`). A fit takes seconds, so it keeps no checkpoint: ``--resume`` returns
+a finished fit's result as it is and starts an unfinished (interrupted) one again from its
+beginning; ``--overwrite`` discards the fit in ``--out`` and runs it again.
 
 ``--demo burgers`` (PBDL's Burgers reconstruction), ``--demo ks-params`` (KS α, β) and
 ``--demo burgers-nu`` (the Burgers viscosity) write their observation file into the run
-directory and fit it.
+directory and fit it; ``--scene KEY=VALUE`` (or a ``[scene]`` table) changes a demo's scene
+(``nu``, ``n``, ``dt``, ...), the solver checks it, and config.json records it whole.
 """
 
 from __future__ import annotations
@@ -45,81 +46,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from . import registry
+from . import engine, scenes
 from .errors import UserError
-from .files import atomic_path, pyplot, save_figure, write_json
+from .files import atomic_path, pyplot, save_figure
 from .fit import GRADIENT_METHODS, FitResult, StartOutsideBoundsError, fit, parse_wrt, problem
-from .run import (
-    SEEDS,
-    Config,
-    Interval,
-    check_memory,
-    discard,
-    finished_result,
-    holds_run,
-    plot_history,
-    refuse_foreign,
-    require_checkpoint,
-    write_history,
-)
+from .fit_demos import DEMOS, demo_problem, demo_scene
+from .run import SEEDS, Config, Interval, check_memory, plot_history
 
-DEMOS = ("burgers", "ks-params", "burgers-nu")
-PBDL_T_OBS_STEP = 16
-#: what a fit's directory holds besides config.json and result.json: replaced by ``overwrite``
-RUN_FILES = ("observations.h5", "history.csv", "fitted.h5", "fit.png", "history.png")
 HISTORY_FIELDS = ("iteration", "misfit", "regularisation", "objective", "grad_norm",
                   "evaluations", "seconds", "cpu_seconds")
-RESULT_KEYS = ("scene", "misfit", "params", "iterations")
 
 
-# ----------------------------------------------------------------------------- built-in problems
-def pbdl_scene():
-    """The PBDL Burgers scene (N = 128 on [−1, 1], ν = 0.01/π, Δt = 1/32) with a velocity bound
-    of 2 for the stability check (5 sub-steps instead of :meth:`pbdl`'s 3), so that the
-    optimiser's trial initial states up to |u| = 2 stay stable."""
-    cls = registry.get("burgers1d-rusanov")
-    return cls(n=128, length=2.0, start=-1.0, nu=0.01 / np.pi, dt=1 / 32, substeps=None, umax=2)
-
-
-def demo_problem(name: str, noise: float = 0.0, seed: int = 0) -> dict[str, Any]:
-    """A built-in problem as the contents of an observation file (see the module doc), with
-    relative Gaussian noise ``noise`` · std(states) drawn from ``seed`` on the observations."""
-    if name == "burgers":
-        scene = pbdl_scene()
-        config = {"n": 128, "length": 2.0, "start": -1.0, "nu": 0.01 / np.pi, "dt": 1 / 32,
-                  "substeps": None, "umax": 2.0}
-        u0 = scene.pbdl_state()
-        traj = scene.rollout(u0, 32, keep="all")
-        steps = [PBDL_T_OBS_STEP]
-        out = {"wrt": "state", "truth_u0": u0, "u0": None, "params": {}}
-    elif name == "ks-params":
-        config = {"n": 64, "length": 22.0, "dt": 0.1}
-        scene = registry.get("ks1d-etdrk4")(**config)
-        u0 = scene.random_state(np.random.default_rng(1234))
-        traj = scene.rollout(u0, 100, keep="all")
-        steps = list(range(5, 101, 5))
-        out = {"wrt": "params", "u0": u0,
-               "params": {"anti_diffusion": 1.3, "hyper_diffusion": 0.7},
-               "bounds": {"hyper_diffusion": (0.05, None)}}
-    elif name == "burgers-nu":
-        scene = registry.get("burgers1d-rusanov")(
-            n=128, length=2.0, start=-1.0, nu=0.01 / np.pi, dt=1 / 32, substeps=8, umax=2)
-        config = {"n": 128, "length": 2.0, "start": -1.0, "nu": 0.01 / np.pi, "dt": 1 / 32,
-                  "substeps": 8, "umax": 2.0}
-        u0 = scene.pbdl_state()
-        traj = scene.rollout(u0, 32, keep="all")
-        steps = list(range(1, 33))
-        out = {"wrt": "nu", "u0": u0, "params": {"nu": 0.02 / np.pi}, "bounds": {"nu": (0, 0.01)}}
-    else:
-        raise UserError(f"unknown demo {name!r}; choose from {', '.join(DEMOS)}")
-    states = traj[steps].copy()
-    if noise:
-        rng = np.random.default_rng(seed)
-        states += noise * float(np.std(traj[1:])) * rng.standard_normal(states.shape)
-    return {"scene": scene.name, "config": config, "steps": np.array(steps), "states": states,
-            "truth_params": dict(scene.params), **out}
-
-
+# ----------------------------------------------------------------------------- observation files
 def write_observations(path: str | Path, prob: dict[str, Any]) -> None:
     """An observation file (module doc) for ``prob`` as made by :func:`demo_problem`."""
     import h5py
@@ -138,7 +76,7 @@ def write_observations(path: str | Path, prob: dict[str, Any]) -> None:
             f["truth/u0"] = prob["truth_u0"]
 
 
-def read_observations(path: str | Path, scene_name: str | None) -> dict[str, Any]:
+def read_observations(path: str | Path, solver: str | None) -> dict[str, Any]:
     """The checked contents of an observation file: scene, steps, states and the optional
     entries (module doc)."""
     import h5py
@@ -155,12 +93,12 @@ def read_observations(path: str | Path, scene_name: str | None) -> dict[str, Any
             if key not in f:
                 raise UserError(f"{path} has no dataset /{key} (see `adjointsim fit --help` "
                                 "for the layout)")
-        name = f.attrs.get("scene", scene_name)
+        name = f.attrs.get("scene", solver)
         if name is None:
-            raise UserError(f"{path} names no scene (attribute 'scene'); give SCENE")
+            raise UserError(f"{path} names no solver (attribute 'scene'); give SOLVER")
         name = str(name)
-        if scene_name is not None and scene_name != name:
-            raise UserError(f"{path} holds observations of {name!r}, not {scene_name!r}")
+        if solver is not None and solver != name:
+            raise UserError(f"{path} holds observations of {name!r}, not {solver!r}")
 
         def attr_json(key: str) -> dict:
             if key not in f.attrs:
@@ -203,19 +141,20 @@ def read_observations(path: str | Path, scene_name: str | None) -> dict[str, Any
 
 
 def make_scene(name: str, config: dict):
-    """The registered scene ``name`` built from its constructor keywords ``config``."""
-    cls = registry.get(name)
+    """The registered solver ``name`` built from its keywords ``config`` (an observation
+    file's scene)."""
     try:
-        return cls(**config)
-    except TypeError as e:
+        return scenes.build(name, config)
+    except ValueError as e:
         raise UserError(f"the scene config {config} does not fit {name}: {e}") from None
 
 
 # ----------------------------------------------------------------------------- the config
 ACCEPTED: dict[str, tuple | Interval | str] = {
-    "scene": "a registered solver name",
+    "solver": "a registered solver name",
     "observations": "a path to an HDF5 observation file",
     "demo": DEMOS,
+    "scene": "a demo's solver keywords (nu, n, dt, ...)",
     "wrt": "state, controls, params or parameter names, comma-separated",
     "noise": Interval(0),
     "seed": SEEDS,
@@ -236,9 +175,11 @@ class FitConfig(Config):
     """One fit: the observations (a file, or a built-in problem), what is fitted and how."""
 
     #: the registered solver (default: the observation file's ``scene`` attribute)
-    scene: str | None = None
+    solver: str | None = None
     observations: str | None = None
     demo: str | None = None
+    #: a demo's solver keywords over its own (an observation file names its scene itself)
+    scene: dict = field(default_factory=dict)
     #: default: state, or the demo's own choice
     wrt: str | None = None
     #: a demo's relative observation noise (0.01 = 1 %) and its seed
@@ -261,16 +202,26 @@ class FitConfig(Config):
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
     def check(self, where: str) -> None:
+        """The observations' source, a demo's scene (checked by its solver and recorded whole,
+        the demo's keywords included), the bounds and starts."""
         if self.demo is None and self.observations is None:
-            raise UserError(f"give SCENE --observations FILE.h5, or --demo {'|'.join(DEMOS)}"
+            raise UserError(f"give SOLVER --observations FILE.h5, or --demo {'|'.join(DEMOS)}"
                             f"{where}")
         if self.demo is not None and self.observations is not None:
             raise UserError(f"--demo makes its own observations; drop --observations{where}")
-        if self.demo is not None and self.scene is not None:
-            raise UserError(f"--demo {self.demo} names its own scene; drop SCENE{where}")
+        if self.demo is not None and self.solver is not None:
+            raise UserError(f"--demo {self.demo} names its own solver; drop SOLVER{where}")
         if self.demo is None and self.noise:
             raise UserError(f"--noise adds noise to a demo's observations; a file's are as "
                             f"they are{where}")
+        if self.demo is None and self.scene:
+            raise UserError(f"--scene sets a demo's scene; an observation file names its own "
+                            f"(attribute config){where}")
+        if self.demo is not None:
+            try:
+                self.scene = demo_scene(self.demo, self.scene)[1]
+            except ValueError as e:
+                raise UserError(f"config key 'scene'{where}: {e}") from None
         self.bound_values(where)
         self.start_values(where)
 
@@ -367,104 +318,134 @@ def demo_observations(prob: dict[str, Any]) -> dict[str, Any]:
             "truth/u0": prob.get("truth_u0"), "truth/controls": None}
 
 
-def run_fit(cfg: FitConfig, out: str | Path, resume: bool = False, overwrite: bool = False,
-            progress: bool = True, plots: bool = True) -> dict[str, Any]:
-    """Fit as configured in the run directory ``out`` (module doc); returns result.json's
-    contents. A finished fit is returned as it is with ``resume``, refused without it;
-    ``overwrite`` discards the fit in ``out``, once the new one's inputs are checked."""
-    cfg.validate()
-    if resume and overwrite:
-        raise UserError("--resume keeps a fit and --overwrite discards it: pass one")
-    out = Path(out)
-    config = cfg.as_dict()
-    if resume and not (out / "config.json").exists():
-        require_checkpoint(out)  # a finished fit there, or no fit to resume at all
-    if not overwrite:
-        refuse_foreign(out, config)
-        finished = finished_result(out, resume, keys=RESULT_KEYS)
-        if finished is not None:
-            return finished
-    prob = None if cfg.demo is None else demo_problem(cfg.demo, cfg.noise, cfg.seed)
-    data = (read_observations(cfg.observations, cfg.scene) if prob is None
-            else demo_observations(prob))
-    scene = make_scene(data["scene"], data["config"])
-    obs = {int(k): s for k, s in zip(data["steps"], data["states"])}
-    wrt = cfg.wrt or ("state" if prob is None else prob["wrt"])
-    bounds = cfg.bound_values()
-    if not bounds and prob is not None:  # a demo's own bounds, on what is fitted
-        fitted = parse_wrt(scene, wrt)[2]
-        bounds = {k: b for k, b in prob.get("bounds", {}).items() if k in fitted}
-    given = {
-        "n": data["n"] if cfg.steps is None else cfg.steps,  # steps = 0 is a length too
-        "wrt": wrt, "u0": data["u0"], "controls": data["controls"],
-        "params": {**data["params"], **cfg.start_values()}, "bounds": bounds,
-        "method": cfg.method, "tikhonov": cfg.tikhonov, "smoothness": cfg.smoothness,
-        "checkpoint": cfg.checkpoint}
-    u0 = data["u0"] if data["u0"] is not None else data["states"][0]
-    states = (cfg.checkpoint or given["n"] + 1) if given["n"] is not None else 1
-    check_memory(4 * states * np.asarray(u0).nbytes,
-                 f"--steps {given['n']} ({states} stored states of {np.asarray(u0).nbytes:,} "
-                 "bytes, and the adjoint's as many)", "choose fewer steps, or --checkpoint S to "
-                 "hold S states")
-    try:
-        problem(scene, obs, **given)  # every input checked before anything is written
-    except StartOutsideBoundsError as e:
-        lo, hi = ("" if b is None else b for b in e.bounds)
-        whose = "" if cfg.bounds else " (the demo's)"
-        raise UserError(f"the start of {e.name} ({e.start}) is outside its bounds "
-                        f"{e.name}={lo}:{hi}{whose}; give a start inside them with --start "
-                        f"{e.name}=VALUE, or wider --bounds {e.name}=LO:HI (a start moved onto "
-                        "a bound would change the problem)") from None
-    if overwrite:
-        if not holds_run(out, config):  # somebody else's files are never discarded
-            refuse_foreign(out, config)
-        discard(out, RUN_FILES)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "config.json", config)
-    if prob is not None:
-        write_observations(out / "observations.h5", prob)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+class FitRun(engine.Problem):
+    """One ``adjointsim fit``: every input is checked when it is built (before anything is
+    written); its one update is the optimiser's whole loop, each iteration a row of the
+    history and a tick of the progress bar. It keeps no checkpoint: stopped, it is run again."""
 
-        bar = tqdm(total=cfg.maxiter, desc=f"fit {scene.name}", unit="it")
+    RESUMABLE = ()
+    HISTORIES: ClassVar = {"history.csv": HISTORY_FIELDS}
+    RUN_FILES = ("observations.h5", "fitted.h5", "fit.png", "history.png")
+    RESULT_KEYS = ("scene", "misfit", "params", "iterations")
+    ATOMIC = False
 
-    def tick(row: dict) -> None:
-        if bar is not None and row["iteration"]:
-            bar.update(1)
-            bar.set_postfix(misfit=f"{row['misfit']:.3g}", grad=f"{row['grad_norm']:.2g}")
+    def __init__(self, config: FitConfig, out: str | Path, plots: bool = True):
+        super().__init__(config, out)
+        self.plots = plots
 
-    try:
-        result = fit(scene, obs, maxiter=cfg.maxiter, tol=cfg.tol, callback=tick, **given)
-    finally:
-        if bar is not None:
-            bar.close()
-    summary: dict[str, Any] = {
-        "scene": scene.name, "config": data["config"], "wrt": list(result.wrt),
-        "method": cfg.method, "misfit": result.misfit,
-        "start_misfit": result.history[0]["misfit"], "params": result.params,
-        "iterations": result.iterations, "evaluations": result.evaluations,
-        "seconds": result.seconds, "success": result.success, "message": result.message,
-        "start_active_bounds": result.start_active_bounds, "active_bounds": result.active_bounds,
-    }
-    if data["truth_params"]:
-        summary["param_rel_error"] = {
-            k: abs(result.params[k] - v) / abs(v) if v else abs(result.params[k])
-            for k, v in data["truth_params"].items() if k in result.wrt}
-    if data["truth/u0"] is not None:
-        summary["u0_mse"] = float(np.mean((result.state - data["truth/u0"]) ** 2))
-    write_history(out / "history.csv", result.history, HISTORY_FIELDS)
-    _write_fitted(out / "fitted.h5", scene.name, data["config"], result)
-    if plots:
-        plot_fit(out / "fit.png", scene, obs, result, data["truth/u0"])
+    def describe(self) -> str:
+        return f"fit {self.scene.name}"
+
+    def total(self) -> int:
+        return self.config.maxiter
+
+    def position(self) -> int:
+        return self.iteration
+
+    def done(self) -> bool:
+        return self.result is not None
+
+    def build(self) -> None:
+        cfg = self.config
+        self.prob = None if cfg.demo is None else demo_problem(cfg.demo, cfg.noise, cfg.seed,
+                                                               cfg.scene)
+        data = (read_observations(cfg.observations, cfg.solver) if self.prob is None
+                else demo_observations(self.prob))
+        scene = make_scene(data["scene"], data["config"])
+        obs = {int(k): s for k, s in zip(data["steps"], data["states"])}
+        wrt = cfg.wrt or ("state" if self.prob is None else self.prob["wrt"])
+        bounds = cfg.bound_values()
+        if not bounds and self.prob is not None:  # a demo's own bounds, on what is fitted
+            fitted = parse_wrt(scene, wrt)[2]
+            bounds = {k: b for k, b in self.prob.get("bounds", {}).items() if k in fitted}
+        given = {
+            "n": data["n"] if cfg.steps is None else cfg.steps,  # steps = 0 is a length too
+            "wrt": wrt, "u0": data["u0"], "controls": data["controls"],
+            "params": {**data["params"], **cfg.start_values()}, "bounds": bounds,
+            "method": cfg.method, "tikhonov": cfg.tikhonov, "smoothness": cfg.smoothness,
+            "checkpoint": cfg.checkpoint}
+        u0 = data["u0"] if data["u0"] is not None else data["states"][0]
+        states = (cfg.checkpoint or given["n"] + 1) if given["n"] is not None else 1
+        check_memory(4 * states * np.asarray(u0).nbytes,
+                     f"--steps {given['n']} ({states} stored states of "
+                     f"{np.asarray(u0).nbytes:,} bytes, and the adjoint's as many)",
+                     "choose fewer steps, or --checkpoint S to hold S states")
+        try:
+            problem(scene, obs, **given)  # every input checked before anything is written
+        except StartOutsideBoundsError as e:
+            lo, hi = ("" if b is None else b for b in e.bounds)
+            whose = "" if cfg.bounds else " (the demo's)"
+            raise UserError(f"the start of {e.name} ({e.start}) is outside its bounds "
+                            f"{e.name}={lo}:{hi}{whose}; give a start inside them with --start "
+                            f"{e.name}=VALUE, or wider --bounds {e.name}=LO:HI (a start moved "
+                            "onto a bound would change the problem)") from None
+        self.data, self.scene, self.obs, self.given = data, scene, obs, given
+        self.result: FitResult | None = None
+        self.iteration = 0
+
+    def update(self) -> bool:
+        """The optimiser's whole loop (the demo's observations written first)."""
+        if self.prob is not None:
+            write_observations(self.out / "observations.h5", self.prob)
+        self.result = fit(self.scene, self.obs, maxiter=self.config.maxiter,
+                          tol=self.config.tol, callback=self.tick, **self.given)
+        return True
+
+    def tick(self, row: dict) -> None:
+        """One iteration of the optimiser, for the progress bar."""
+        if row["iteration"]:
+            self.iteration = row["iteration"]
+            self.progress(self.iteration, misfit=f"{row['misfit']:.3g}",
+                          grad=f"{row['grad_norm']:.2g}")
+
+    def finish(self) -> dict:
+        """The fitted values and their errors against the truth (where it is known);
+        ``fitted.h5``."""
+        result, data = self.result, self.data
+        summary: dict[str, Any] = {
+            "scene": self.scene.name, "config": data["config"], "wrt": list(result.wrt),
+            "method": self.config.method, "misfit": result.misfit,
+            "start_misfit": result.history[0]["misfit"], "params": result.params,
+            "iterations": result.iterations, "evaluations": result.evaluations,
+            "seconds": result.seconds, "success": result.success, "message": result.message,
+            "start_active_bounds": result.start_active_bounds,
+            "active_bounds": result.active_bounds,
+        }
+        if data["truth_params"]:
+            summary["param_rel_error"] = {
+                k: abs(result.params[k] - v) / abs(v) if v else abs(result.params[k])
+                for k, v in data["truth_params"].items() if k in result.wrt}
+        if data["truth/u0"] is not None:
+            summary["u0_mse"] = float(np.mean((result.state - data["truth/u0"]) ** 2))
+        _write_fitted(self.out / "fitted.h5", self.scene.name, data["config"], result)
+        return summary
+
+    def plot(self) -> None:
+        """``fit.png`` and ``history.png`` (misfit and gradient norm per iteration)."""
+        if not self.plots:
+            return
+        result = self.result
+        plot_fit(self.out / "fit.png", self.scene, self.obs, result, self.data["truth/u0"])
         curves = {label: [{"iteration": h["iteration"], "value": max(h[key], 1e-300)}
                           for h in result.history]
                   for label, key in (("misfit", "misfit"), ("gradient norm", "grad_norm"))}
-        plot_history(out / "history.png", curves, "iteration", "value", "iteration",
+        plot_history(self.out / "history.png", curves, "iteration", "value", "iteration",
                      "misfit, gradient norm",
-                     title=f"{scene.name}: fit of {', '.join(result.wrt)}")
-    write_json(out / "result.json", summary)
-    return summary
+                     title=f"{self.scene.name}: fit of {', '.join(result.wrt)}")
+
+    def histories(self) -> dict[str, list[dict]]:
+        return {"history.csv": [] if self.result is None else self.result.history}
+
+
+def run_fit(cfg: FitConfig, out: str | Path, resume: bool = False, overwrite: bool = False,
+            progress: bool = True, plots: bool = True) -> dict[str, Any]:
+    """Fit as configured in the run directory ``out`` (module doc); returns result.json's
+    contents (the config and the fit's summary). A finished fit is returned as it is with
+    ``resume``, refused without it; ``overwrite`` discards the fit in ``out``, once the new
+    one's inputs are checked."""
+    cfg.validate()
+    return engine.run(FitRun(cfg, out, plots=plots), resume=resume, overwrite=overwrite,
+                      progress=progress)
 
 
 def _write_fitted(path: Path, scene_name: str, config: dict, result: FitResult) -> None:

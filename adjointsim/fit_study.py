@@ -1,7 +1,7 @@
 """The ``fit-params`` study: coefficients from solver trajectories with :func:`adjointsim.fit.fit`
 (``adjointsim study fit-params``).
 
-Two problems of :func:`adjointsim.fit_run.demo_problem`, each fitted from a perturbed start with
+Two problems of :func:`adjointsim.fit_demos.demo_problem`, each fitted from a perturbed start with
 L-BFGS-B (tol 1e-30, the initial state known):
 
 * ``ks-params``: ``ks1d-etdrk4``, N = 64, L = 22, Δt = 0.1, a smooth random initial state (seed
@@ -51,10 +51,10 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """One fit; per fitted parameter its true, starting and fitted value and relative error."""
     from .fit import fit
-    from .fit_run import demo_problem, make_scene
+    from .fit_demos import demo_problem, demo_scene
 
     prob = demo_problem(cell["problem"], cell["noise"], cell["seed"])
-    scene = make_scene(prob["scene"], prob["config"])
+    scene = demo_scene(cell["problem"])[0]
     obs = {int(k): s for k, s in zip(prob["steps"], prob["states"])}
     given = {"wrt": prob["wrt"], "u0": prob["u0"], "params": prob["params"],
              "bounds": prob.get("bounds")}

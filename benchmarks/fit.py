@@ -2,7 +2,7 @@
 
     python benchmarks/fit.py [--repeats 21] [--batches 1,16]
 
-The problem is PBDL's Burgers reconstruction (:func:`adjointsim.fit_run.pbdl_scene`: N = 128,
+The problem is PBDL's Burgers reconstruction (:func:`adjointsim.fit_demos.pbdl_scene`: N = 128,
 Δt = 1/32 in 5 Rusanov sub-steps, ν = 0.01/π), the misfit at step 16, with the gradient with
 respect to the initial state and ν:
 
@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from adjointsim.fit import problem  # noqa: E402
-from adjointsim.fit_run import PBDL_T_OBS_STEP, pbdl_scene  # noqa: E402
+from adjointsim.fit_demos import PBDL_T_OBS_STEP, pbdl_scene, pbdl_state  # noqa: E402
 
 
 def torch_misfit(scene, u0: torch.Tensor, nu: torch.Tensor, target: torch.Tensor,
@@ -51,7 +51,7 @@ def torch_misfit(scene, u0: torch.Tensor, nu: torch.Tensor, target: torch.Tensor
 def measure(scene, steps: int, batch: int, repeats: int) -> None:
     """One table row: the agreement check, then round-robin timings."""
     rng = np.random.default_rng(batch)
-    truth = scene.pbdl_state(batch)
+    truth = pbdl_state(scene, batch)
     obs = {steps: scene.rollout(truth, steps)}
     u0 = truth + 0.05 * rng.standard_normal(truth.shape)
     nu0 = 0.8 * scene.params["nu"]

@@ -12,6 +12,8 @@ from .options import (
     out_option,
     overrides,
     progress_option,
+    scene_of,
+    scene_option,
     threads_option,
 )
 
@@ -38,9 +40,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
     p.description = fit_run.__doc__
     p.formatter_class = argparse.RawDescriptionHelpFormatter
-    p.add_argument("scene", nargs="?", default=None,
+    p.add_argument("solver", nargs="?", default=None, metavar="SOLVER",
                    help="registered solver name (default: the file's 'scene' attribute)")
-    out_option(p, "runs/fit-DEMO, or runs/fit-SCENE")
+    out_option(p, "runs/fit-DEMO, or runs/fit-SOLVER")
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="a fit keeps no checkpoint: return the finished fit in --out as it "
@@ -54,8 +56,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
     json_option(p, "also write the result (result.json's contents) here")
     p.add_argument("--no-plots", dest="plots", action="store_false",
                    help="no fit.png and history.png")
-    skip = ("scene", "steps", "checkpoint", "bounds", "start")
+    skip = ("solver", "scene", "steps", "checkpoint", "bounds", "start")
     config_flags(p, FitConfig, FitConfig.ACCEPTED, skip=skip, helps=_HELPS)
+    scene_option(p)
     keys = p.add_argument_group("more FitConfig keys (also accepted in --config)")
     keys.add_argument("--steps", type=at_least(0), default=None,
                       help="rollout length (default: the file's n, else the last observed step)")
@@ -72,14 +75,12 @@ def run(args: argparse.Namespace) -> int:
     from adjointsim import parallel
     from adjointsim.files import write_json
     from adjointsim.fit_run import FitConfig, run_fit
-    from adjointsim.run import run_errors
 
     parallel.set_threads(args.threads)
-    cfg = FitConfig.load(args.config, **overrides(args, FitConfig))
-    out = args.out or Path(f"runs/fit-{cfg.demo or cfg.scene or 'fit'}")
-    with run_errors(out):
-        summary = run_fit(cfg, out, resume=args.resume, overwrite=args.overwrite,
-                          progress=args.progress, plots=args.plots)
+    cfg = FitConfig.load(args.config, **{**overrides(args, FitConfig), "scene": scene_of(args)})
+    out = args.out or Path(f"runs/fit-{cfg.demo or cfg.solver or 'fit'}")
+    summary = run_fit(cfg, out, resume=args.resume, overwrite=args.overwrite,
+                      progress=args.progress, plots=args.plots)
     extra = "".join(f", {k} = {v:.3g}" for k, v in summary.items()
                     if k == "u0_mse") + "".join(
         f", rel. error of {k} {v:.2g}" for k, v in summary.get("param_rel_error", {}).items())

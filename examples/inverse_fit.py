@@ -24,6 +24,7 @@ import numpy as np
 
 import adjointsim
 from adjointsim.fit import fit
+from adjointsim.fit_demos import pbdl_scene, pbdl_state
 
 
 def ks_parameters(noise: float, steps: int, maxiter: int) -> dict[str, float]:
@@ -48,9 +49,8 @@ def ks_parameters(noise: float, steps: int, maxiter: int) -> dict[str, float]:
 
 
 def burgers_state(maxiter: int) -> None:
-    scene = adjointsim.get("burgers1d-rusanov")(
-        n=128, length=2.0, start=-1.0, nu=0.01 / np.pi, dt=1 / 32, substeps=None, umax=2)
-    truth = scene.pbdl_state()  # u_0 = -sin(pi x)
+    scene = pbdl_scene()
+    truth = pbdl_state(scene)  # u_0 = -sin(pi x)
     obs = {16: scene.rollout(truth, 16)}  # t = 16 dt = 0.5
     print(f"Burgers, one observation at t = 0.5, initial state from zero, {maxiter} iterations:")
     for smoothness in (0.0, 1e-4):

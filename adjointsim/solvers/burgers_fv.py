@@ -352,20 +352,6 @@ class BurgersRusanov1D(BurgersScene):
         "cfl": Range(0.3, 0.9),
     }
 
-    @classmethod
-    def pbdl(cls) -> BurgersRusanov1D:
-        """The PBDL Burgers scene: 128 cells on [−1, 1], Δt = 1/32, ν = 0.01/π.
-
-        One Δt breaks the explicit limit (Courant number 2 alone), so each step takes the fewest
-        stable sub-steps; 32 steps reach t = 1. Start from :meth:`pbdl_state`.
-        """
-        return cls(n=128, length=2.0, start=-1.0, nu=0.01 / np.pi, dt=1 / 32, substeps=None)
-
-    def pbdl_state(self, batch: int = 1, dtype: Any = np.float64) -> np.ndarray:
-        """The PBDL initial state u_0 = −sin(π x) at the cell centres, shape (batch, 1, N)."""
-        u = -np.sin(np.pi * self.nodes())
-        return np.broadcast_to(u, self.state_shape(batch)).astype(dtype)
-
 
 @register
 class BurgersRusanov2D(BurgersScene):

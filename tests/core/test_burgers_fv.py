@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from adjointsim.check import check_stepper
+from adjointsim.fit_demos import pbdl_scene, pbdl_state
 from adjointsim.solvers.burgers_fv import BurgersRusanov1D, BurgersRusanov2D
 from tests.references import burgers_fv as numpy_reference
 
@@ -52,7 +53,7 @@ def test_gradients_non_default_scenes(stepper):
 
 
 def test_gradients_pbdl_preset():
-    st = BurgersRusanov1D.pbdl()
+    st = pbdl_scene(umax=1.0)
     _assert_passed(check_stepper(st, steps=8, batch=2, seed=0))
 
 
@@ -62,8 +63,8 @@ def test_nu_gradient_through_the_pbdl_shock():
     The PBDL initial state is odd about the face x = 0, where u_L = −u_R (a sonic point of the
     flux); perturbing ν keeps that symmetry, so the map stays differentiable along ν.
     """
-    st = BurgersRusanov1D.pbdl()
-    u0 = st.pbdl_state()
+    st = pbdl_scene(umax=1.0)
+    u0 = pbdl_state(st)
     target = np.tanh(-st.nodes() / 0.05)[None, None]
     u = st.rollout(u0, 32)
     g = st.vjp(u0, 32, u - target, wrt_params=True).params["nu"]
@@ -116,13 +117,13 @@ def test_first_order_against_cole_hopf(cls, sizes):
 
 
 def test_pbdl_preset_reaches_t1_with_a_shock():
-    st = BurgersRusanov1D.pbdl()
+    st = pbdl_scene(umax=1.0)
     assert (st.grid_shape, st.dt, st.params["nu"]) == ((128,), 1 / 32, pytest.approx(0.01 / np.pi))
     # Δt = 1/32 alone has Courant number 1/32 · 1 / (2/128) = 2: the step is split.
     assert st.substeps == 3
     x = st.nodes()
     assert x[0] == pytest.approx(-1 + 1 / 128) and x[-1] == pytest.approx(1 - 1 / 128)
-    u0 = st.pbdl_state(batch=2)
+    u0 = pbdl_state(st, batch=2)
     np.testing.assert_allclose(u0[1, 0], -np.sin(np.pi * x))
     traj = st.rollout(u0, 32, keep="all")
     assert 32 * st.dt == 1.0 and np.all(np.isfinite(traj))
@@ -159,8 +160,8 @@ def test_mean_conserved_energy_decays_maximum_principle(stepper):
 
 
 def test_pbdl_total_variation_does_not_grow():
-    st = BurgersRusanov1D.pbdl()
-    traj = st.rollout(st.pbdl_state(), 32, keep="all")[:, 0, 0]
+    st = pbdl_scene(umax=1.0)
+    traj = st.rollout(pbdl_state(st), 32, keep="all")[:, 0, 0]
     tv = np.abs(traj - np.roll(traj, 1, axis=-1)).sum(axis=-1)
     assert np.all(np.diff(tv) <= 1e-12)
 
@@ -171,7 +172,7 @@ def test_pbdl_total_variation_does_not_grow():
     [
         BurgersRusanov1D(n=30, nu=0.03, substeps=2, cfl=0.8),
         BurgersRusanov2D(n=14, nu=0.1, amplitude=1.3, cfl=0.9),
-        BurgersRusanov1D.pbdl(),
+        pbdl_scene(umax=1.0),
     ],
     ids=lambda s: f"{s.name}-n{s.grid_shape[0]}",
 )

@@ -230,7 +230,7 @@ def test_fit_command(tmp_path, capsys):
         (["--observations", str(obs), "--bounds", "nu=1"], "NAME=LO:HI"),
         (["--observations", str(obs), "--noise", "0.1"], "--noise adds noise to a demo's"),
         (["--demo", "burgers", "--observations", str(obs)], "drop --observations"),
-        ([], "give SCENE --observations FILE.h5, or --demo"),
+        ([], "give SOLVER --observations FILE.h5, or --demo"),
     ]:
         assert main(["fit", *argv, "--out", str(tmp_path / "x"), "--no-progress"]) == 2
         err = capsys.readouterr().err
@@ -292,7 +292,7 @@ def test_fit_resume_and_overwrite(tmp_path, capsys):
     unfinished one again; --overwrite runs it again; a fit of another config is refused."""
     out = tmp_path / "nu"
     assert _fit(out, "--resume") == 2  # nothing there to resume
-    assert "holds no checkpoint" in capsys.readouterr().err and not out.exists()
+    assert "holds no run to continue" in capsys.readouterr().err and not out.exists()
     assert _fit(out, "--json", str(tmp_path / "r.json")) == 0
     first = (out / "result.json").read_text()
     assert json.loads((tmp_path / "r.json").read_text()) == json.loads(first)
@@ -350,16 +350,15 @@ def _rows(path):
     return json.loads(path.read_text())
 
 
-def test_studies_are_registered_and_write_only_their_directory(tmp_path, monkeypatch, capsys):
-    """fit-params, burgers-dp-pinn and burgers-nu-dp-pinn run their cells through the runner
-    into runs/study-NAME-SIZE; nothing is written under docs/."""
-    from adjointsim.cli import main
+def test_fit_params_study_writes_only_its_directory(tmp_path, monkeypatch):
+    """fit-params runs its cells through the runner (without torch) into its directory;
+    nothing is written under docs/."""
     from adjointsim.fit_study import ROW_KEYS
+    from adjointsim.runner import run
 
     monkeypatch.chdir(tmp_path)
-    assert main(["study", "fit-params", "--size", "tiny", "--cluster", "none",
-                 "--no-progress"]) == 0
     out = tmp_path / "runs" / "study-fit-params-tiny"
+    run("fit-params", out, "tiny", None, cluster="none", progress=False)
     rows = _rows(out / "fit-params.json")
     assert [(r["problem"], r["noise"], r["parameter"]) for r in rows] == [
         ("ks-params", 0.0, "anti_diffusion"), ("ks-params", 0.0, "hyper_diffusion"),
@@ -369,51 +368,36 @@ def test_studies_are_registered_and_write_only_their_directory(tmp_path, monkeyp
     assert max(r["rel_error"] for r in rows if r["noise"] == 0) < 1e-10
     assert "| burgers-nu | nu |" in (out / "fit-params.md").read_text()
     assert (out / "fit-params.png").stat().st_size > 0
-    assert main(["study", "burgers-dp-pinn", "--size", "tiny", "--cluster", "none",
-                 "--no-progress"]) == 0
-    out = tmp_path / "runs" / "study-burgers-dp-pinn-tiny"
-    result = _rows(out / "fit-burgers.json")
-    assert set(result) >= {"rows", "pinn_config", "pinn_history", "dp_history"}
-    methods = [r["method"] for r in result["rows"]]
-    assert methods[:2] == ["DP, L-BFGS-B, 3 iterations", "DP, L-BFGS-B, 10 iterations"]
-    # the PINN within DP's run time (which epoch depends on the timing) and at its end
-    assert all(m.startswith("PINN, Adam, uniform weights, ") for m in methods[2:-1])
-    assert methods[-2] == "PINN, Adam, uniform weights, 20 epochs"
-    assert methods[-1] == "book's DP (phiflow/TF, 50 gradient steps)"
-    assert all(set(r) == {"method", "misfit", "u0_mse", "seconds"} for r in result["rows"])
-    assert (out / "fit-burgers.md").is_file() and (out / "fit-burgers.png").is_file()
-    assert main(["study", "burgers-nu-dp-pinn", "--size", "tiny", "--cluster", "none",
-                 "--no-progress"]) == 0
-    out = tmp_path / "runs" / "study-burgers-nu-dp-pinn-tiny"
-    rows = _rows(out / "fit-params-pinn.json")
-    assert [(r["method"].split(" ")[0], r["noise"]) for r in rows] == [
-        ("DP", 0.0), ("PINN,", 0.0), ("DP", 0.01), ("PINN,", 0.01)]
-    assert all(set(r) == {"method", "noise", "nu", "rel_error", "seconds"} for r in rows)
-    assert rows[0]["rel_error"] < 1e-10
-    assert (out / "fit-params-pinn.md").is_file() and (out / "fit-params-pinn.png").is_file()
     assert not (tmp_path / "docs").exists()
 
 
-def test_burgers_pinn_residual_and_training():
-    import torch
+def test_fit_demo_scene(tmp_path, capsys):
+    """--scene (over a [scene] table) changes a demo's scene: checked by its solver, recorded
+    whole in config.json, the observations made and fitted in it; a file names its own."""
+    from adjointsim.cli import main
+    from adjointsim.fit_demos import SCENES
+    from adjointsim.fit_run import read_observations
 
-    from adjointsim.train.burgers_pinn import NU, BurgersPinn, BurgersPinnConfig, train_pinn
-
-    x = np.linspace(-1, 1, 16, endpoint=False) + 1 / 16
-    cfg = BurgersPinnConfig(collocation=50, boundary_points=10, dtype="float64", epochs=12,
-                            weighting="inverse-dirichlet",
-                            log_every=4, width=8, depth=3)
-    prob = BurgersPinn(x, -np.sin(np.pi * x), cfg)
-    net = prob.model()
-    # the Taylor-jet residual against nested autograd in the physical coordinates
-    p = prob.col.clone().requires_grad_(True)
-    u = prob.u(net, p)
-    du = torch.autograd.grad(u.sum(), p, create_graph=True)[0]
-    u_xx = torch.autograd.grad(du[:, 0].sum(), p)[0][:, 0]
-    res = du[:, 1] + u[:, 0] * du[:, 0] - NU * u_xx
-    jet_residual = float(prob.losses(net)["residual"].detach())
-    assert jet_residual == pytest.approx(float((res.detach() ** 2).mean()), rel=1e-12)
-    net, prob, history = train_pinn(x, -np.sin(np.pi * x), cfg, progress=False)
-    assert [h["epoch"] for h in history] == [1, 4, 8, 12]
-    assert history[-1]["misfit"] < history[0]["misfit"]
-    assert history[-1]["weight/data"] != 1.0  # inverse-Dirichlet updated the weights
+    out = tmp_path / "nu"
+    table = tmp_path / "scene.toml"
+    table.write_text("[scene]\nnu = 0.004\nn = 64\n")
+    assert _fit(out, "--config", str(table), "--scene", "nu=0.005") == 0
+    scene = {**SCENES["burgers-nu"][1], "nu": 0.005, "n": 64}
+    assert json.loads((out / "config.json").read_text())["scene"] == scene
+    assert json.loads((out / "result.json").read_text())["config"] == scene
+    obs = read_observations(out / "observations.h5", None)
+    assert obs["config"] == scene and obs["states"].shape[-1] == 64
+    assert obs["truth_params"] == {"nu": 0.005}
+    capsys.readouterr()
+    for flags, message in [
+        (["--scene", "nu=-1"], "config key 'scene': burgers1d-rusanov: nu must be"),
+        (["--scene", "mass=1"], "scene key 'mass': burgers1d-rusanov takes n, length"),
+        (["--scene", "nu"], "--scene 'nu' is not KEY=VALUE"),
+    ]:
+        assert _fit(tmp_path / "x", *flags) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    assert main(["fit", "burgers1d-rusanov", "--observations", str(out / "observations.h5"),
+                 "--scene", "nu=0.01", "--out", str(tmp_path / "x")]) == 2
+    assert "--scene sets a demo's scene" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

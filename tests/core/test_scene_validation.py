@@ -15,7 +15,6 @@ from hypothesis import strategies as st
 
 import adjointsim
 from adjointsim import validate
-from adjointsim.solvers.burgers_fv import BurgersRusanov1D
 from adjointsim.solvers.kuramoto_sivashinsky import KuramotoSivashinskyETDRK
 from adjointsim.solvers.navier_stokes import NavierStokes2D
 from adjointsim.stepper import Choice
@@ -317,7 +316,6 @@ def test_non_numeric_arguments(name, kw, exc, arg):
 def test_presets_are_valid_and_check_their_own_arguments():
     KuramotoSivashinskyETDRK.kassam_trefethen()
     NavierStokes2D.kolmogorov_drag(re=500.0, n=16)
-    BurgersRusanov1D.pbdl()
     for re_ in (0.0, -100.0, math.inf):
         with pytest.raises(ValueError, match=r"\bre must be a finite number > 0"):
             NavierStokes2D.kolmogorov_drag(re=re_)
