@@ -67,7 +67,7 @@ class Problem:
 
     Class attributes say what the engine needs to know of the command: :attr:`RESUMABLE`
     config keys may change when a run is continued (where it lives, its threads), a larger
-    value of an :attr:`EXTENDABLE` key continues a finished run (its length),
+    value of an :attr:`EXTENDABLE` key continues a finished run (its length; None: no limit),
     :attr:`HISTORIES` names each history file and its columns, :attr:`RUN_FILES` the other
     files a run writes (discarded by ``overwrite``), :attr:`RESULT_KEYS` what a result must
     hold. The methods below are what a run does; the defaults fit a problem without state.
@@ -332,6 +332,9 @@ class RunDir:
 
 
 def _less(a: Any, b: Any) -> bool:
+    """Whether length ``a`` is shorter than ``b`` (None: no limit, longer than any)."""
+    if b is None:
+        return a is not None
     return isinstance(a, int | float) and isinstance(b, int | float) and a < b
 
 

@@ -127,6 +127,17 @@ def test_finished_run_returned_refused_or_extended(tmp_path):
     assert longer["x"] == engine.run(count(tmp_path / "s", epochs=4), progress=False)["x"]
 
 
+def test_a_limit_below_no_limit_is_shorter(tmp_path):
+    """An extendable length recorded as None (no limit) is longer than any number."""
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps({"epochs": None, "rate": 0.5, "threads": 1}))
+    (out / "result.json").write_text(json.dumps({"epochs": None, "rate": 0.5, "threads": 1,
+                                                 "x": 1.0}))
+    with pytest.raises(RunExists, match="epochs = None; pass as much or more"):
+        engine.RunDir(count(out, epochs=3)).claim(True, False)
+
+
 def test_foreign_and_other_configuration_refused(tmp_path):
     other = tmp_path / "other"
     other.mkdir()
