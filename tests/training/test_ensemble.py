@@ -17,7 +17,7 @@ LRS = (1e-3, 1e-3, 1e-3, 3e-3)
 def _cfg(tmp_path, where, seed, dtype, mode, epochs=1, train=100, batch=2, **kw):
     """50 updates in one epoch: few evaluations and files, so the test stays fast."""
     kw = {"clip": CLIPS[seed], "lr": LRS[seed]} | kw
-    return control.ControlConfig(task="cartpole", poles=2, mode=mode, seed=seed, epochs=epochs,
+    return control.ControlConfig(task="cartpole", level=2, mode=mode, seed=seed, epochs=epochs,
                                  train=train, test=4, batch=batch, dtype=dtype,
                                  out=str(tmp_path / where / f"s{seed}"), **kw)
 
@@ -35,8 +35,8 @@ def test_members_equal_their_separate_runs(tmp_path, dtype, mode, tol):
                          progress=False)
     for s in range(4):
         sep = control.train_controller(_cfg(tmp_path, "sep", s, dtype, mode), progress=False)
-        a = load_checkpoint(tmp_path / "ens" / f"s{s}" / "checkpoint.pt", ("net",))
-        b = load_checkpoint(tmp_path / "sep" / f"s{s}" / "checkpoint.pt", ("net",))
+        a = load_checkpoint(tmp_path / "ens" / f"s{s}" / "checkpoint.pt", ("state",))["state"]
+        b = load_checkpoint(tmp_path / "sep" / f"s{s}" / "checkpoint.pt", ("state",))["state"]
         assert _max_rel(a["net"], b["net"]) <= tol
         moments = {f"{i}{k}": v[k] for i, v in b["optimizer"]["state"].items()
                    for k in ("exp_avg", "exp_avg_sq")}
@@ -51,8 +51,8 @@ def test_members_equal_their_separate_runs(tmp_path, dtype, mode, tol):
         for name in ("rollout.png", "test_loss.png", "result.json", "config.json"):
             assert (tmp_path / "ens" / f"s{s}" / name).exists()
     # the members really differ (seed, clip, learning rate), so the check above can fail
-    nets = [load_checkpoint(tmp_path / "ens" / f"s{s}" / "checkpoint.pt", ("net",))["net"]
-            for s in range(4)]
+    nets = [load_checkpoint(tmp_path / "ens" / f"s{s}" / "checkpoint.pt", ("state",))
+            ["state"]["net"] for s in range(4)]
     assert all(_max_rel(nets[0], n) > 1e-3 for n in nets[1:])
 
 
@@ -68,9 +68,9 @@ def test_a_member_resumes_as_a_separate_run_and_an_ensemble_resumes(tmp_path):
     for s in (0, 1, 2):
         control.train_controller(_cfg(tmp_path, "sep", s, "float64", "M", epochs=2, **kw),
                                  progress=False)
-        a, b = (load_checkpoint(tmp_path / w / f"s{s}" / "checkpoint.pt", ("net",))
+        a, b = (load_checkpoint(tmp_path / w / f"s{s}" / "checkpoint.pt", ("state",))
                 for w in ("ens", "sep"))
-        assert _max_rel(a["net"], b["net"]) <= 1e-10
+        assert _max_rel(a["state"]["net"], b["state"]["net"]) <= 1e-10
         assert len(a["history"]) == 2
 
 
@@ -101,6 +101,43 @@ def test_members_must_share_everything_but_seed_clip_and_lr(tmp_path):
     same[1].out = same[0].out
     with pytest.raises(UserError, match="run directories of their own"):
         train_ensemble(same, progress=False)
+
+
+def test_seeds_ctrl_c_says_where_and_resume_takes_added_or_deleted_members(tmp_path, capsys,
+                                                                            monkeypatch):
+    """Ctrl-C names the ensemble's --out (the members' checkpoints are in its seedN folders);
+    --resume continues the members that hold a run and starts a member added, or one whose
+    folder was deleted, beside them: neither spelling of the command refuses it."""
+    import shutil
+
+    from adjointsim.cli import main
+    from adjointsim.train import checkpoint
+
+    out = tmp_path / "runs"
+    args = ["control", "cartpole", "--mode", "R", "--epochs", "1", "--train", "4", "--test",
+            "4", "--batch", "4", "--dtype", "float64", "--no-progress", "--out", str(out),
+            "--seeds"]
+    real = checkpoint.save_checkpoint
+
+    def stop(*a, **kw):  # Ctrl-C right after the members' first checkpoints
+        real(*a, **kw)
+        if str(a[1]).startswith(str(out / "seed1")):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(checkpoint, "save_checkpoint", stop)
+    assert main([*args, "0", "1"]) == 130
+    assert f"continue with the same command and --resume (--out {out})" in \
+        capsys.readouterr().err
+    monkeypatch.setattr(checkpoint, "save_checkpoint", real)
+    assert main([*args, "0", "1", "--resume"]) == 0
+    shutil.rmtree(out / "seed0")
+    assert main([*args, "0", "1", "2", "--resume"]) == 0
+    for s in (0, 1, 2):
+        assert len(read_history(out / f"seed{s}" / "history.csv")) == 1
+    assert main([*args, "0", "1", "2"]) == 2  # all finished: refused without --resume
+    assert "holds a finished run" in capsys.readouterr().err
+    assert main([*args, "7", "8", "--resume"]) == 2
+    assert "no seed in" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- neural steppers
