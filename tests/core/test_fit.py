@@ -401,3 +401,20 @@ def test_fit_demo_scene(tmp_path, capsys):
                  "--scene", "nu=0.01", "--out", str(tmp_path / "x")]) == 2
     assert "--scene sets a demo's scene" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_fit_ctrl_c_means_run_it_again(tmp_path, capsys, monkeypatch):
+    """A fit keeps no checkpoint: stopped, it says to run the command again, and that (with
+    or without --resume) fits from the beginning."""
+    from adjointsim import fit_run
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "nu"
+    with monkeypatch.context() as m:
+        m.setattr(fit_run, "fit", stopped)
+        assert _fit(out) == 130
+    assert "nothing to resume, run the command again" in capsys.readouterr().err
+    assert (out / "config.json").exists() and not (out / "result.json").exists()
+    assert _fit(out) == 0 and (out / "result.json").exists()
