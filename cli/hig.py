@@ -26,7 +26,8 @@ _HELPS = {
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    from adjointsim.train.hig_problems import PROBLEMS, HigConfig
+    from adjointsim.train.hig_problems import HigConfig
+    from adjointsim.train.higs import PROBLEMS
 
     p.add_argument("problem", choices=PROBLEMS.names(), help="the problem (config key problem)")
     run_options(p, "runs/hig-PROBLEM-OPTIMIZER-seedSEED")
