@@ -94,7 +94,8 @@ def ks_correction(members: int, updates: int, dtype: str, work: Path
         train(cfg("separate", s), progress=False)
     separate = time.perf_counter() - start
     return ensemble, separate, max(
-        _deviation(*(load_checkpoint(where / kind / f"s{s}" / "checkpoint.pt")["model"]
+        _deviation(*(load_checkpoint(where / kind / f"s{s}" / "checkpoint.pt",
+                                     ("state",))["state"]["model"]
                      for kind in ("ensemble", "separate")))
         for s in range(members))
 
