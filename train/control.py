@@ -301,17 +301,18 @@ class Controller(engine.Problem):
         # the epoch's progress too, so that Ctrl-C between two updates resumes where it stopped
         self.state = {"epoch": 0, **fresh_epoch()}
         self.history: list[dict] = []
-        self.order: tuple[int, torch.Tensor] | None = None
+        self._order: tuple[int, torch.Tensor] | None = None
 
     def batch(self) -> torch.Tensor:
         """The next minibatch of training initial states, in the epoch's order (drawn from the
         seed and the epoch)."""
         epoch, i, size = self.state["epoch"], self.state["step"], self.config.batch
-        if self.order is None or self.order[0] != epoch:
+        if self._order is None or self._order[0] != epoch:
             seed = int(np.random.SeedSequence([self.config.seed, epoch]).generate_state(1)[0])
-            self.order = (epoch, torch.randperm(self.config.train,
-                                                generator=torch.Generator().manual_seed(seed)))
-        return self.x_train[self.order[1][i * size:(i + 1) * size]]
+            order = torch.randperm(self.config.train,
+                                   generator=torch.Generator().manual_seed(seed))
+            self._order = (epoch, order)
+        return self.x_train[self._order[1][i * size:(i + 1) * size]]
 
     def update(self) -> bool:
         start = time.perf_counter()
