@@ -1,5 +1,7 @@
 """PBDL's Burgers problems, differentiable physics (DP) against a physics-informed network
-(:mod:`adjointsim.train.burgers_pinn`), as two studies:
+(:mod:`adjointsim.train.burgers_pinn`), as two studies. Each cell is one run in its own
+directory: DP a fit run (``adjointsim fit --demo``), the PINN a training run
+(:class:`adjointsim.train.burgers_pinn.BurgersPinnRun`); an interrupted study continues them.
 
 * ``burgers-dp-pinn`` (``adjointsim study burgers-dp-pinn``): the reconstruction of u(·, 0)
   from the state at t = 0.5. Cells: DP (L-BFGS-B from zero) at each iteration limit of the size,
@@ -10,7 +12,7 @@
   inverse-Dirichlet weighting with the residual as the reference term, the choice that drives
   it to u ≈ 0.
 * ``burgers-nu-dp-pinn`` (``adjointsim study burgers-nu-dp-pinn``): the viscosity from every
-  step of the PBDL trajectory (:func:`adjointsim.fit_run.demo_problem` ``burgers-nu``, ν from
+  step of the PBDL trajectory (:func:`adjointsim.fit_demos.demo_problem` ``burgers-nu``, ν from
   2 ν_true), noise-free and with 1 % noise: DP against the PINN inverse problem (ν learned with
   the network); ``fit-params-pinn.md``, ``fit-params-pinn.json`` and ``fit-params-pinn.png``.
 
@@ -20,15 +22,12 @@ Seconds are CPU seconds of one thread (DP without numba's compilation).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict
 from pathlib import Path
-
-import torch
 
 from adjointsim.files import pyplot, save_figure, write_json, write_text
 from adjointsim.runner import Study, register_study
 
-from ..burgers_pinn import BOOK_DP, NU, BurgersPinnConfig, pbdl_data, run_dp, train_pinn
+from ..burgers_pinn import BOOK_DP, BurgersPinnConfig, run_dp, run_pinn
 from ..threads import use_threads
 
 #: a PINN small enough for a smoke test of the whole pipeline
@@ -59,31 +58,27 @@ def cells(size: str, seeds: int | None) -> list[dict]:
                 **spec["pinn"]} for s in range(n)])
 
 
-def _pinn_keys(cell: dict) -> dict:
-    return {k: v for k, v in cell.items() if k not in ("id", "solver", "budget", "noise")}
+def _pinn(cell: dict, run_dir: Path, demo: str) -> dict:
+    """The cell's PINN run: its config and result, with its history."""
+    keys = {k: v for k, v in cell.items() if k not in ("id", "solver", "budget")}
+    cfg = BurgersPinnConfig(demo=demo, seconds=cell["budget"], **keys)
+    return {"pinn_config": cfg.as_dict(), **run_pinn(cfg, run_dir)}
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """DP: misfit, MSE of u(·, 0), seconds, its history and curves. PINN: its config, history
     and curves."""
-    from adjointsim.fit_run import PBDL_T_OBS_STEP
-
     use_threads(1)
     if cell["solver"] == "dp":
-        d = run_dp(cell["maxiter"])
-        r = d["result"]
-        return {"misfit": d["misfit"], "u0_mse": d["u0_mse"], "seconds": d["seconds"],
-                "iterations": d["iterations"], "history": r.history, "x": d["x"],
-                "observed": d["observed"], "true_u0": d["u0"],
-                "predicted": r.predicted[PBDL_T_OBS_STEP][0, 0], "fitted_u0": r.state[0, 0]}
-    scene, _, observed = pbdl_data()
-    cfg = BurgersPinnConfig(seconds=cell["budget"], **_pinn_keys(cell))
-    net, prob, history = train_pinn(scene.nodes(), observed[0, 0], cfg, progress=False)
-    with torch.no_grad():
-        predicted = prob.u(net, prob.obs_in).numpy().ravel()
-        fitted_u0 = prob.u(net, prob.init_in).numpy().ravel()
-    return {"pinn_config": asdict(cfg), "history": history, "x": scene.nodes(),
-            "predicted": predicted, "fitted_u0": fitted_u0}
+        d = run_dp("burgers", run_dir, maxiter=cell["maxiter"], tol=0.0)
+        data = d["data"]
+        return {"misfit": d["misfit"], "u0_mse": d["u0_mse"],
+                "seconds": d["history"][-1]["cpu_seconds"], "iterations": d["iterations"],
+                "history": d["history"], "x": data["x"], "observed": data["observed"][0],
+                "true_u0": data["u0"], "predicted": d["predicted"][0],
+                "fitted_u0": d["fitted_u0"]}
+    p = _pinn(cell, run_dir, "burgers")
+    return {k: p[k] for k in ("pinn_config", "history", "x", "predicted", "fitted_u0")}
 
 
 def _split(rows: list[dict]) -> tuple[list[dict], list[dict]]:
@@ -185,27 +180,19 @@ def nu_cells(size: str, seeds: int | None) -> list[dict]:
 
 def nu_run_cell(cell: dict, run_dir: Path) -> dict:
     """The fitted ν, its relative error and the CPU seconds; the PINN's ν over its training."""
-    from adjointsim.fit import fit
-    from adjointsim.fit_run import demo_problem, make_scene
-
     use_threads(1)
-    prob = demo_problem("burgers-nu", cell["noise"], cell["seed"])
-    scene = make_scene(prob["scene"], prob["config"])
     if cell["solver"] == "dp":
-        obs = {int(k): v for k, v in zip(prob["steps"], prob["states"])}
-        fit(scene, obs, wrt="nu", u0=prob["u0"], params=prob["params"], maxiter=1)  # compile
-        r = fit(scene, obs, wrt="nu", u0=prob["u0"], params=prob["params"],
-                bounds=prob["bounds"], tol=1e-30)
-        return {"method": "DP (adjointsim.fit)", "nu": r.params["nu"],
-                "rel_error": abs(r.params["nu"] / NU - 1),
-                "seconds": r.history[-1]["cpu_seconds"]}
-    cfg = BurgersPinnConfig(seconds=cell["budget"], learn_nu=True,
-                            nu_start=prob["params"]["nu"], **_pinn_keys(cell))
-    times = tuple(float(k) * scene.dt for k in prob["steps"])
-    _, _, history = train_pinn(scene.nodes(), prob["states"][:, 0, 0], cfg, False, times)
+        d = run_dp("burgers-nu", run_dir, cell["noise"], cell["seed"], tol=1e-30)
+        nu = d["params"]["nu"]
+        true_nu = d["data"]["nu"]
+        return {"method": "DP (adjointsim.fit)", "nu": nu, "rel_error": abs(nu / true_nu - 1),
+                "true_nu": true_nu, "seconds": d["history"][-1]["cpu_seconds"]}
+    p = _pinn(cell, run_dir, "burgers-nu")
+    history = p["history"]
     h = history[-1]
     return {"method": f"PINN, ν learned ({h['epoch']} epochs)", "nu": h["nu"],
-            "rel_error": abs(h["nu"] / NU - 1), "seconds": h["seconds"],
+            "rel_error": abs(h["nu"] / p["true_nu"] - 1), "true_nu": p["true_nu"],
+            "seconds": h["seconds"],
             "history": [{"seconds": g["seconds"], "nu": g["nu"]} for g in history]}
 
 
@@ -235,7 +222,7 @@ def nu_plot(rows: list[dict], path: Path) -> None:
                     "-", color=color, label=label)
         else:
             ax.plot([max(r["seconds"], 1e-4)], [r["nu"]], "o", color=color, label=label)
-    ax.axhline(NU, color="k", ls="--", lw=0.8, label="true ν")
+    ax.axhline(rows[0]["true_nu"], color="k", ls="--", lw=0.8, label="true ν")
     ax.set(xscale="log", yscale="log", xlabel="CPU seconds (one thread)", ylabel="ν",
            title="Burgers viscosity: DP against the PINN inverse problem")
     ax.legend(fontsize=7)
