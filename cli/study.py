@@ -47,9 +47,9 @@ def run(args: argparse.Namespace) -> int:
     failure is printed with its cell id), after the report of what finished."""
     from adjointsim import runner
     from adjointsim.files import write_json
-    from adjointsim.train.studies import load_all
+    from adjointsim.train.studies import load
 
-    load_all()
+    load(args.problem)
     suffix = "" if args.size == "full" else f"-{args.size}"
     out = args.out or Path("runs") / f"study-{args.problem}{suffix}"
     failed: list[tuple[str, str]] = []

@@ -1,5 +1,6 @@
 """The gradient checker itself: it never flags a correct adjoint where its finite-difference
-references are noisy, it still catches small adjoint errors, and its CLI output is valid JSON."""
+references are noisy, and it still catches small adjoint errors (its command, adjointsim
+gradcheck, is tested in tests/commands/test_gradcheck.py)."""
 
 import json
 import math
@@ -21,7 +22,6 @@ from adjointsim.check import (
     check,
     check_stepper,
 )
-from adjointsim.cli import main
 
 
 def _small(name: str):
@@ -176,36 +176,12 @@ def test_float32_roundoff_allowance_is_capped():
     assert _roundoff_allowance(1.1, 1.0, 50, 1.0) == pytest.approx(cap)
 
 
-@pytest.mark.parametrize("steps", ["0", "-3"])
-def test_cli_rejects_non_positive_steps(steps, capsys):
-    assert main(["gradcheck", "diffusion1d-ftcs", "--steps", steps]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and f"--steps: must be ≥ 1, not {steps}" in err
-
-
 def test_rows_without_a_measurement_are_json_null():
     row = CheckResult("s", "state", math.nan, math.inf, 1e-10, None, 1e-9, 1e-10, 1e-6, False,
                       "dot-product reference is non-finite")
     d = row.as_dict()
     assert d["dot_rel_err"] is None and d["dot_ref_err"] is None and d["taylor_rate"] is None
     json.dumps(d, allow_nan=False)
-
-
-def test_cli_json_is_strict_json_with_reference_errors(capsys):
-    assert main(["gradcheck", "ks1d-etdrk1", "--steps", "5", "--json", "-"]) == 0
-
-    def reject(constant):
-        raise AssertionError(f"{constant} is not JSON")
-
-    rows = json.loads(capsys.readouterr().out, parse_constant=reject)
-    assert {r["wrt"] for r in rows} == {"state", "controls", "anti_diffusion", "hyper_diffusion"}
-    assert all(r["passed"] and r["reason"] is None and r["dot_ref_err"] > 0 for r in rows)
-
-
-def test_table_shows_reference_errors(capsys):
-    assert main(["gradcheck", "ks1d-etdrk1", "--steps", "3"]) == 0
-    out = capsys.readouterr().out.splitlines()
-    assert "ref" in out[1].split() and "error estimate" in out[0]
 
 
 @pytest.mark.slow

@@ -1,14 +1,12 @@
-"""adjointsim study stability: bisection on Δt finds the FTCS diffusion limit 0.5 h²/ν that the
-scheme states, and the sweep runs as cells of the study runner."""
+"""The stability study's pieces: bisection on Δt finds the FTCS diffusion limit 0.5 h²/ν that
+the scheme states, the verdicts, the report and the sizes' schemes (the command, adjointsim
+study stability, is tested in tests/commands/test_study_stability.py)."""
 
 from __future__ import annotations
-
-import json
 
 import pytest
 
 from adjointsim import stability
-from adjointsim.cli import main
 
 
 def test_ftcs_limit_found_and_stated():
@@ -23,22 +21,6 @@ def test_ftcs_limit_found_and_stated():
     (None, 2.0, "missing"), (None, None, "unconditional"), (1.0, None, "conservative")])
 def test_verdicts(stated, found, verdict):
     assert stability.verdict(stated, found) == verdict
-
-
-def test_stability_study(tmp_path, capsys):
-    out = tmp_path / "st"
-    argv = ["study", "stability", "--size", "tiny", "--cluster", "none", "--no-progress",
-            "--out", str(out), "--json", str(tmp_path / "rows.json")]
-    assert main(argv) == 0
-    rows = json.loads((tmp_path / "rows.json").read_text())
-    assert [(r["scheme"], r["n"]) for r in rows] == [
-        ("advection1d-upwind", 16), ("advection1d-upwind", 32), ("oscillators-rk4", None)]
-    # Upwind: |a| Δt / h ≤ 1, so Δt ≤ h for a = 1 on the unit interval.
-    for r in rows[:2]:
-        assert r["stated"] == pytest.approx(1 / r["n"], rel=1e-3) and r["verdict"] == "ok"
-    assert "| advection1d-upwind | 32 |" in (out / "stability.md").read_text()
-    assert "| oscillators-rk4 | – |" in capsys.readouterr().out
-    assert (out / "stability.png").stat().st_size > 0
 
 
 def test_stability_report_of_schemes_without_grids_draws_their_panel(tmp_path):

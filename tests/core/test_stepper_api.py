@@ -1,7 +1,7 @@
 """The shared contract: validation messages, non-finite detection, cotangent forms, the fast
-path (validate once, then run and reverse), re-entrant steppers, the CLI."""
+path (validate once, then run and reverse), re-entrant steppers, no caller of the steppers'
+private methods."""
 
-import json
 import re
 import sys
 import threading
@@ -13,7 +13,6 @@ import pytest
 
 import adjointsim
 from adjointsim import NonFiniteStateError
-from adjointsim.cli import main
 from adjointsim.stepper import Stepper
 
 FTCS = adjointsim.get("diffusion1d-ftcs")
@@ -383,33 +382,6 @@ def test_nothing_outside_the_contract_calls_a_stepper_private():
                     line = text.count("\n", 0, m.start()) + 1
                     found.append(f"{path.relative_to(ROOT)}:{line}: {m.group(0)}")
     assert not found, "calls to Stepper privates:\n" + "\n".join(found)
-
-
-def test_cli_list_and_json(capsys):
-    assert main(["gradcheck", "--list"]) == 0
-    assert "diffusion1d-ftcs" in capsys.readouterr().out.split()
-    assert main(["gradcheck", "diffusion1d-ftcs", "--steps", "10", "--json", "-"]) == 0
-    out = capsys.readouterr().out
-    rows = json.loads(out)
-    assert {r["wrt"] for r in rows} == {"state", "controls", "nu"}
-    keys = {"solver", "wrt", "dot_rel_err", "dot_ref_err", "dot_bound", "taylor_rate",
-            "fd_rel_err", "fd_ref_err", "fd_bound", "passed", "reason"}
-    assert all(set(r) == keys and r["passed"] for r in rows)
-
-
-def test_cli_rejects_unknown_names(capsys):
-    assert main(["gradcheck", "nope"]) == 2
-    assert "unknown solver" in capsys.readouterr().err
-
-
-def test_ci_runs_the_readme_commands():
-    root = Path(__file__).resolve().parents[2]
-    readme = (root / "README.md").read_text()
-    ci = (root / ".ci" / "run").read_text()
-    commands = [line for line in ci.splitlines() if line.startswith("python3 -m")]
-    assert commands, "no commands in .ci/run"
-    for line in commands:
-        assert line in readme, f".ci/run runs {line!r}, which the README does not show"
 
 
 # ------------------------------------------------------------------ step counts, parameters
