@@ -1,10 +1,13 @@
-"""A test-only study for tests/test_runner.py, in a module of its own so that Dask worker
-processes can import its functions (tests/ is on their path: spawned local workers inherit
+"""A test-only study for tests/core/test_runner.py, in a module of its own so that Dask worker
+processes can import its functions (tests/core is on their path: spawned local workers inherit
 sys.path, the test's `dask worker` subprocess gets PYTHONPATH).
 
-Cells: "ok-K" do a little torch work; "dies" checkpoints one epoch at a time and kills its
+Cells: "ok-K" do a little NumPy work; "dies" checkpoints one epoch at a time and kills its
 worker process (os._exit) in epoch 2 on its first attempt; "raises" raises while the file
 OUT/FAIL exists. Every call appends "id pid" to OUT/calls.log, so tests see what ran where.
+Each row holds the worker's solver threads and the threads its libraries take (``threads``):
+OMP_NUM_THREADS, which torch, MKL and OpenBLAS read when imported, else every core. That torch
+itself then takes one thread is tested in tests/training/test_runner_threads.py.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ import json
 import os
 import time
 from pathlib import Path
+
+import numpy as np
 
 from adjointsim import parallel
 from adjointsim.files import write_text
@@ -29,11 +34,9 @@ def cells(size: str, seeds: int | None) -> list[dict]:
 
 
 def run_cell(cell: dict, run_dir: Path) -> dict:
-    import torch
-
     with open(run_dir.parent / "calls.log", "a") as log:
         log.write(f"{cell['id']} {os.getpid()}\n")
-    row = {"pid": os.getpid(), "threads": torch.get_num_threads(),
+    row = {"pid": os.getpid(), "threads": int(os.environ.get("OMP_NUM_THREADS", os.cpu_count())),
            "solver_threads": parallel.threads()}
     if cell["id"] == "raises" and (run_dir.parent / "FAIL").exists():
         raise ValueError("boom in cell raises\nsecond line")
@@ -46,12 +49,11 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
                 os._exit(1)
             write_text(ckpt, json.dumps({"epoch": epoch + 1}))
         return {**row, "resumed_from": start}
-    torch.manual_seed(cell.get("seed", 0))
-    a = torch.randn(200, 200)
+    a = np.random.default_rng(cell.get("seed", 0)).standard_normal((200, 200))
     for _ in range(20):
-        a = torch.sin(a @ a / 200)
+        a = np.sin(a @ a / 200)
     time.sleep(0.3)  # long enough that both workers take cells
-    return {**row, "value": float(a.abs().sum())}
+    return {**row, "value": float(np.abs(a).sum())}
 
 
 def report(rows: list[dict], out: Path) -> str:
