@@ -378,7 +378,8 @@ def _split(x: torch.Tensor, axis: int, size: int) -> torch.Tensor:
 def _per_element(apply: Callable, info, in_dims: tuple, args: tuple) -> tuple:
     """The fallback: one call per mapped element, results stacked along dimension 0."""
     outs = [
-        apply(*(a if d is None else a.select(d, i) for a, d in zip(args, in_dims, strict=True)))
+        apply(*(a.select(d, i) if isinstance(d, int) else a
+                for a, d in zip(args, in_dims, strict=True)))
         for i in range(info.batch_size)
     ]
     return tuple(torch.stack(parts) for parts in zip(*outs, strict=True)), (0,) * len(outs[0])
@@ -490,10 +491,13 @@ def _grouped_setup(ctx, inputs, output) -> None:
 
 
 def _grouped_backward(ctx, grad, _tape_grad):
+    rows = ctx.config[1]
+    # The operator's rows are a list of tensors, and so must their (absent) cotangents be.
+    no_rows = [None] * len(rows) if all(isinstance(r, torch.Tensor) for r in rows) else None
     if grad is None or not ctx.needs_input_grad[4]:
-        return (None,) * 5
+        return None, no_rows, None, None, None
     (tape,) = ctx.saved_tensors
-    return None, None, None, None, GROUPED_VJP(*ctx.config, tape, grad)[0]
+    return None, no_rows, None, None, GROUPED_VJP(*ctx.config, tape, grad)[0]
 
 
 def _grouped_vjp_kernel(

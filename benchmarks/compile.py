@@ -1,0 +1,168 @@
+"""Training updates eager against ``torch.compile``: where compiling a loss through a solver pays.
+
+    python benchmarks/compile.py [--quick] [--json PATH] [--backends aot_eager,inductor]
+
+Each task is one training update (the loss of several solver steps through
+``adjointsim.train.bridge``, its backward pass, an Adam step), one thread for torch and the
+solvers:
+
+* ``ks-correction-wig``: List et al.'s KS correction setup: the 33k ResNet (26 × 8) corrects the
+  coarse ``ks1d-etdrk1`` (48 points, dt 1, 2 substeps) after each of m = 3 solver steps, the
+  gradient through the solver's adjoint (WIG), batch 16;
+* ``cartpole-controller``: a StableBPTT-like controller: the tasks' 11k MLP (100 × 2) picks the
+  force of a 4-pole cart-pole from its state at each of 100 steps, one solver call per step
+  (mode C's graph: the network sees the state the solver returned), batch 8.
+
+For each task and backend, a row: ``eager_s`` and ``compiled_s`` (median seconds per update,
+process CPU time, after warm-up), ``compile_s`` (wall seconds of the first compiled update, less
+one eager update: tracing and code generation), ``graph_breaks`` (``torch._dynamo.explain``),
+``max_abs_diff`` (the largest difference of the loss and the gradients, compiled against
+eager, on the same parameters), ``speedup`` (eager / compiled) and ``break_even_updates``
+(updates after which the compile time is paid back; null when compiling does not pay).
+``aot_eager`` runs torch's own kernels on the traced graph (bit-for-bit the eager numbers);
+``inductor`` generates C++ for the network's layers (needs a C++ compiler) and may reorder
+their arithmetic (round-off differences).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections.abc import Callable
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("TORCHINDUCTOR_COMPILE_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import adjointsim  # noqa: E402
+from adjointsim.files import write_json  # noqa: E402
+from adjointsim.nets.mlp import MLP  # noqa: E402
+from adjointsim.nets.resnet import ResNet  # noqa: E402
+from adjointsim.train import bridge  # noqa: E402
+
+
+class Task:
+    """One update's pieces: the network, the data, and the loss of (network, data)."""
+
+    def __init__(self, name: str, net: torch.nn.Module, data: torch.Tensor,
+                 loss: Callable[[torch.Tensor], torch.Tensor]) -> None:
+        self.name, self.net, self.data, self.loss = name, net, data, loss
+
+
+def ks_correction(batch: int = 16, unroll: int = 3) -> Task:
+    torch.manual_seed(0)
+    ks = adjointsim.get("ks1d-etdrk1")(n=48, length=2 * np.pi * 8, dt=1.0, substeps=2)
+    net = ResNet(1, 1, width=26, blocks=8).double()
+    u0 = torch.from_numpy(ks.random_state(np.random.default_rng(0), batch))
+    target = torch.from_numpy(ks.random_state(np.random.default_rng(1), batch))
+
+    def loss(u: torch.Tensor) -> torch.Tensor:
+        total = u.new_zeros(())
+        for _ in range(unroll):
+            u = bridge.rollout(ks, u, 1)
+            u = u + net(u)
+            total = total + (u - target).square().mean()
+        return total / unroll
+
+    return Task("ks-correction-wig", net, u0, loss)
+
+
+def cartpole_controller(batch: int = 8, steps: int = 100) -> Task:
+    torch.manual_seed(0)
+    cartpole = adjointsim.get("cartpole")(poles=4)
+    size = int(np.prod(cartpole.state_shape(1)))
+    net = MLP(size, 1, width=100, depth=2)
+    x0 = torch.from_numpy(cartpole.random_state(np.random.default_rng(0), batch)).float()
+
+    def loss(x: torch.Tensor) -> torch.Tensor:
+        total = x.new_zeros(())
+        for _ in range(steps):
+            c = net(x.flatten(1))
+            x = bridge.step(cartpole, x, c)
+            total = total + x.square().mean() + 1e-3 * c.square().mean()
+        return total / steps
+
+    return Task("cartpole-controller", net, x0, loss)
+
+
+TASKS = {"ks-correction-wig": ks_correction, "cartpole-controller": cartpole_controller}
+
+
+def _gradients(task: Task, loss_fn: Callable) -> list[torch.Tensor]:
+    """The loss and the parameters' gradients (the parameters left untouched)."""
+    params = list(task.net.parameters())
+    loss = loss_fn(task.data)
+    return [loss.detach(), *torch.autograd.grad(loss, params)]
+
+
+def _update_seconds(task: Task, loss_fn: Callable, updates: int) -> float:
+    """Median CPU seconds of one update (loss, backward, Adam step) over ``updates``."""
+    opt = torch.optim.Adam(task.net.parameters(), lr=1e-6)
+    times = []
+    for _ in range(updates):
+        t0 = time.process_time()
+        opt.zero_grad(set_to_none=True)
+        loss_fn(task.data).backward()
+        opt.step()
+        times.append(time.process_time() - t0)
+    return float(np.median(times))
+
+
+def measure(make: Callable[[], Task], backend: str, updates: int) -> dict:
+    task = make()
+    explained = torch._dynamo.explain(task.loss)(task.data)
+    torch._dynamo.reset()
+    compiled = torch.compile(task.loss, fullgraph=True, backend=backend)
+    want = _gradients(task, task.loss)
+    start = time.perf_counter()
+    got = _gradients(task, compiled)  # traces, compiles and runs once
+    first_s = time.perf_counter() - start
+    diff = max(float((a - b).abs().max()) for a, b in zip(got, want, strict=True))
+    _update_seconds(task, task.loss, 2)  # warm-up
+    _update_seconds(task, compiled, 2)
+    eager = _update_seconds(task, task.loss, updates)
+    fast = _update_seconds(task, compiled, updates)
+    compile_s = max(first_s - eager, 0.0)
+    saved = eager - fast
+    return {
+        "task": task.name, "backend": backend, "eager_s": eager, "compiled_s": fast,
+        "compile_s": compile_s, "graph_breaks": explained.graph_break_count,
+        "max_abs_diff": diff, "speedup": eager / fast,
+        "break_even_updates": int(np.ceil(compile_s / saved)) if saved > 0 else None,
+        "updates": updates, "dtype": str(task.data.dtype).removeprefix("torch."),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="5 timed updates, not 21")
+    parser.add_argument("--json", type=str, default=None, help="write the rows there")
+    parser.add_argument("--backends", default="aot_eager,inductor")
+    parser.add_argument("--tasks", default=",".join(TASKS))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    updates = 5 if args.quick else 21
+    rows = []
+    for name in args.tasks.split(","):
+        for backend in args.backends.split(","):
+            row = measure(TASKS[name], backend, updates)
+            rows.append(row)
+            even = row["break_even_updates"]
+            print(
+                f"{row['task']:22s} {backend:10s} eager {row['eager_s'] * 1e3:8.1f} ms  "
+                f"compiled {row['compiled_s'] * 1e3:8.1f} ms  x{row['speedup']:.2f}  "
+                f"compile {row['compile_s']:6.1f} s  breaks {row['graph_breaks']}  "
+                f"max|diff| {row['max_abs_diff']:.1e}  "
+                f"pays after {'never' if even is None else f'{even} updates'}",
+                flush=True,
+            )
+    if args.json:
+        write_json(args.json, rows)
+
+
+if __name__ == "__main__":
+    main()
