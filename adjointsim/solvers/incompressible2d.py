@@ -1,0 +1,981 @@
+"""2D incompressible Navier–Stokes on a staggered (MAC) grid with walls, inflow, outflow and
+obstacles; semi-Lagrangian advection and an exact pressure projection.
+
+Continuous, on a box of nx × ny square cells of side h:
+    u_t + (u·∇)u = ν Δu + b ρ e_y + f,   ∇·u = 0,   ρ_t + u·∇ρ = s,
+with an optional advected density ρ (smoke) lifting the flow through the Boussinesq term b ρ,
+body forces f and density sources s as per-step controls. Each side of the box is a no-slip
+wall, a free-slip wall, a moving lid (tangential speed ``lid_speed``), an inflow (normal speed
+``inflow_speed`` times a uniform or parabolic profile), an outflow (pressure zero, zero normal
+gradient of the tangential velocity) or periodic (in pairs). Obstacles are a mask of solid
+cells (staircase walls): every face touching a solid cell carries zero velocity.
+
+Discrete (Chorin's splitting, one step from u_k to u_{k+1}; c = Δt/h):
+ 0. boundary values: the normal velocity of wall, obstacle and inflow faces is set (zero, or
+    inflow_speed · profile); a periodic side's last face copies its first;
+ 1. advection, the book's semi-Lagrangian scheme: every free face (and density cell) at x
+    takes the value at x − Δt u(x), sampled bilinearly from the padded fields, where one
+    ghost layer holds each side's tangential condition (−u inside a no-slip wall, +u at a
+    free-slip wall or an outflow, 2U − u at a lid, the opposite side when periodic) and the
+    sample points are clamped into that layer (or wrapped, when periodic);
+ 2. explicit viscosity: u += ν c/h Δ_h u on the free faces (same ghost layer);
+ 3. forces: u += Δt f, v += Δt (f_y + b ρ̄) (ρ̄ the advected density averaged onto the face),
+    ρ += Δt s;
+ 4. projection: M φ = −(D u) on the fluid cells, u −= G φ on the free faces, where D is the
+    undivided divergence, G the undivided gradient (φ = 0 in an outflow's ghost cell: a
+    Dirichlet condition) and M = −D G the graph Laplacian of the fluid cells (Neumann at walls
+    and obstacles). M is factorised once per geometry (scipy's SuperLU); a connected region of
+    fluid without an outflow gets M + e_c e_cᵀ at one of its cells c, which leaves the solution
+    of a compatible right-hand side unchanged (its equations sum to φ_c = 0) and makes M
+    invertible. After the step the discrete divergence D u is zero to the solve's round-off.
+
+State (B, C, nx + 1, ny + 1), x along axis −2: channel 0 holds u at the faces (i h, (j + ½) h),
+i ≤ nx, j < ny; channel 1 holds v at ((i + ½) h, j h), i < nx, j ≤ ny; channel 2 (with
+``density``) holds ρ at the cell centres, i < nx, j < ny. The entries outside these ranges are
+spare: the step writes zero into them and ignores them. Controls have the state's shape per
+step and act on the free faces and fluid cells only.
+
+Adjoint: every stage above is reversed in the opposite order; the projection's adjoint is the
+transposed solve with the same factors (M is symmetric). The bilinear sample's derivative in its
+sample point is that of the cell it falls in (one-sided on a cell edge, zero where clamped), so
+the discrete adjoint matches the tangent of the code everywhere the sample points stay off cell
+edges (the gradients are those of a piecewise-smooth map). The adjoint recomputes each step's
+intermediate fields from its input state, not its pressure solve.
+
+Limits, checked: ν Δt/h² ≤ ¼ (explicit viscosity) and a Courant number (speed · Δt/h) of at
+most 1 for the lid, the inflow and the initial state: a backtrace then crosses at most one cell
+and cannot pass through a wall or an obstacle one cell thick.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
+
+from .. import validate
+from ..errors import UserError
+from ..registry import register
+from ..stepper import Choice, Range, Stepper
+
+SIDES = ("wall", "slip", "lid", "inflow", "outflow", "periodic")
+WALL, SLIP, LID, INFLOW, OUTFLOW, PERIODIC = range(6)
+#: face kinds: advected, diffused and projected; set by the boundary; a periodic side's copy
+FREE, FIXED, COPY = 0, 1, 2
+PROFILES = ("uniform", "parabolic")
+OBSTACLES = ("cylinder", "box")
+#: largest Courant number (speed · Δt / h) accepted
+MAX_COURANT = 1.0
+#: largest ν Δt / h² of the explicit viscosity (the 5-point Laplacian's limit)
+MAX_DIFFUSION = 0.25
+
+
+# ------------------------------------------------------------------ bilinear samples
+@njit(cache=True, nogil=True)
+def _coord(q, size, off, period, periodic):
+    """The cell (i0) and fraction of coordinate ``q`` on an axis of ``size`` samples, and
+    dq'/dq (1, or 0 where clamped). Periodic axes wrap q − off into [0, period)."""
+    d = 1.0
+    if periodic:
+        q = q - period * np.floor((q.real - off) / period)
+    elif q.real < 0.0:
+        q = q - q
+        d = 0.0
+    elif q.real > size - 1:
+        q = q - q + (size - 1)
+        d = 0.0
+    i0 = int(np.floor(q.real))
+    if i0 > size - 2:
+        i0 = size - 2
+    return i0, q - i0, d
+
+
+@njit(cache=True, nogil=True)
+def _sample(q, a, b, geo):
+    """Bilinear sample of the padded field ``q`` at index coordinates (a, b); ``geo`` holds
+    (offset, period, periodic) of both axes."""
+    i, fa, _ = _coord(a, q.shape[0], geo[0], geo[1], geo[2])
+    j, fb, _ = _coord(b, q.shape[1], geo[3], geo[4], geo[5])
+    return ((1 - fa) * ((1 - fb) * q[i, j] + fb * q[i, j + 1])
+            + fa * ((1 - fb) * q[i + 1, j] + fb * q[i + 1, j + 1]))
+
+
+@njit(cache=True, nogil=True)
+def _sample_adjoint(q, qbar, a, b, geo, g):
+    """Scatter the cotangent ``g`` of a sample into ``qbar``; return the cotangents of a, b."""
+    i, fa, da = _coord(a, q.shape[0], geo[0], geo[1], geo[2])
+    j, fb, db = _coord(b, q.shape[1], geo[3], geo[4], geo[5])
+    qbar[i, j] += (1 - fa) * (1 - fb) * g
+    qbar[i, j + 1] += (1 - fa) * fb * g
+    qbar[i + 1, j] += fa * (1 - fb) * g
+    qbar[i + 1, j + 1] += fa * fb * g
+    abar = da * g * ((1 - fb) * (q[i + 1, j] - q[i, j]) + fb * (q[i + 1, j + 1] - q[i, j + 1]))
+    bbar = db * g * ((1 - fa) * (q[i, j + 1] - q[i, j]) + fa * (q[i + 1, j + 1] - q[i + 1, j]))
+    return abar, bbar
+
+
+# ------------------------------------------------------------------ ghost layers
+@njit(cache=True, nogil=True)
+def _ghost_sign(side):
+    """A tangential ghost value is sign · (the inner value) (+ 2 · lid speed at a lid)."""
+    return 1.0 if side == SLIP or side == OUTFLOW or side == PERIODIC else -1.0
+
+
+@njit(cache=True, nogil=True)
+def _pad_u(u, big, sides, lid):
+    """big (nx + 1, ny + 2): u with a ghost row below and above (the bottom/top conditions)."""
+    nx1, ny = u.shape
+    for i in range(nx1):
+        for j in range(ny):
+            big[i, j + 1] = u[i, j]
+        lo, hi = (ny - 1, 0) if sides[2] == PERIODIC else (0, ny - 1)
+        big[i, 0] = _ghost_sign(sides[2]) * u[i, lo] + 2.0 * lid[2]
+        big[i, ny + 1] = _ghost_sign(sides[3]) * u[i, hi] + 2.0 * lid[3]
+
+
+@njit(cache=True, nogil=True)
+def _unpad_u(big, ubar, sides):
+    nx1, ny = ubar.shape
+    for i in range(nx1):
+        for j in range(ny):
+            ubar[i, j] += big[i, j + 1]
+        lo, hi = (ny - 1, 0) if sides[2] == PERIODIC else (0, ny - 1)
+        ubar[i, lo] += _ghost_sign(sides[2]) * big[i, 0]
+        ubar[i, hi] += _ghost_sign(sides[3]) * big[i, ny + 1]
+
+
+@njit(cache=True, nogil=True)
+def _pad_v(v, big, sides, lid):
+    """big (nx + 2, ny + 1): v with a ghost column left and right (the left/right conditions)."""
+    nx, ny1 = v.shape
+    lo, hi = (nx - 1, 0) if sides[0] == PERIODIC else (0, nx - 1)
+    for j in range(ny1):
+        for i in range(nx):
+            big[i + 1, j] = v[i, j]
+        big[0, j] = _ghost_sign(sides[0]) * v[lo, j] + 2.0 * lid[0]
+        big[nx + 1, j] = _ghost_sign(sides[1]) * v[hi, j] + 2.0 * lid[1]
+
+
+@njit(cache=True, nogil=True)
+def _unpad_v(big, vbar, sides):
+    nx, ny1 = vbar.shape
+    lo, hi = (nx - 1, 0) if sides[0] == PERIODIC else (0, nx - 1)
+    for j in range(ny1):
+        for i in range(nx):
+            vbar[i, j] += big[i + 1, j]
+        vbar[lo, j] += _ghost_sign(sides[0]) * big[0, j]
+        vbar[hi, j] += _ghost_sign(sides[1]) * big[nx + 1, j]
+
+
+@njit(cache=True, nogil=True)
+def _pad_d(d, big, px, py):
+    """big (nx + 2, ny + 2): the density with a ghost ring, zero-gradient or periodic."""
+    nx, ny = d.shape
+    for i in range(nx):
+        for j in range(ny):
+            big[i + 1, j + 1] = d[i, j]
+    for j in range(1, ny + 1):
+        big[0, j] = big[nx, j] if px else big[1, j]
+        big[nx + 1, j] = big[1, j] if px else big[nx, j]
+    for i in range(nx + 2):
+        big[i, 0] = big[i, ny] if py else big[i, 1]
+        big[i, ny + 1] = big[i, 1] if py else big[i, ny]
+
+
+@njit(cache=True, nogil=True)
+def _unpad_d(big, dbar, px, py):
+    """Adds the transpose of :func:`_pad_d` of ``big`` to ``dbar``; destroys ``big``."""
+    nx, ny = dbar.shape
+    for i in range(nx + 2):
+        big[i, ny if py else 1] += big[i, 0]
+        big[i, 1 if py else ny] += big[i, ny + 1]
+    for j in range(1, ny + 1):
+        big[nx if px else 1, j] += big[0, j]
+        big[1 if px else nx, j] += big[nx + 1, j]
+    for i in range(nx):
+        for j in range(ny):
+            dbar[i, j] += big[i + 1, j + 1]
+
+
+@njit(cache=True, nogil=True)
+def _refresh(u, v, ukind, vkind):
+    """A periodic side's last face copies its first."""
+    nx1, ny = u.shape
+    for j in range(ny):
+        if ukind[nx1 - 1, j] == COPY:
+            u[nx1 - 1, j] = u[0, j]
+    nx, ny1 = v.shape
+    for i in range(nx):
+        if vkind[i, ny1 - 1] == COPY:
+            v[i, ny1 - 1] = v[i, 0]
+
+
+@njit(cache=True, nogil=True)
+def _fold(ub, vb, ukind, vkind):
+    """Transpose of :func:`_refresh`, in place on the cotangents."""
+    nx1, ny = ub.shape
+    for j in range(ny):
+        if ukind[nx1 - 1, j] == COPY:
+            ub[0, j] += ub[nx1 - 1, j]
+            ub[nx1 - 1, j] = 0.0
+    nx, ny1 = vb.shape
+    for i in range(nx):
+        if vkind[i, ny1 - 1] == COPY:
+            vb[i, 0] += vb[i, ny1 - 1]
+            vb[i, ny1 - 1] = 0.0
+
+
+# ------------------------------------------------------------------ the pressure solve
+@njit(cache=True, nogil=True)
+def _solve(b, x, w, lp, li, lx, up, ui, ux, udiag, perm_r, perm_c):
+    """x = M⁻¹ b from SuperLU's factors Pr M Pc = L U (L unit lower, its diagonal left out; U
+    strictly upper with its diagonal ``udiag``), both CSC. ``w`` is scratch."""
+    n = b.shape[0]
+    for i in range(n):
+        w[perm_r[i]] = b[i]
+    for j in range(n):
+        wj = w[j]
+        for k in range(lp[j], lp[j + 1]):
+            w[li[k]] -= lx[k] * wj
+    for j in range(n - 1, -1, -1):
+        w[j] /= udiag[j]
+        wj = w[j]
+        for k in range(up[j], up[j + 1]):
+            w[ui[k]] -= ux[k] * wj
+    for i in range(n):
+        x[i] = w[perm_c[i]]
+
+
+# ------------------------------------------------------------------ one step
+@njit(cache=True, nogil=True)
+def _face_cells(i, n, periodic):
+    """The cells (lo, hi) on both sides of face i of an axis of n cells; −1 outside."""
+    lo = i - 1
+    hi = i
+    if lo < 0:
+        lo = n - 1 if periodic else -1
+    if hi >= n:
+        hi = -1
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _begin(src, u, v, d, ukind, vkind, uprof, vprof, fluid, speed, has_d):
+    """Step 0: the boundary values. u, v, d: the state's fields (spare entries cut off)."""
+    nx1, ny = u.shape
+    nx = nx1 - 1
+    for i in range(nx1):
+        for j in range(ny):
+            k = ukind[i, j]
+            u[i, j] = src[0, i, j] if k == FREE else speed * uprof[i, j]
+    for i in range(nx):
+        for j in range(ny + 1):
+            k = vkind[i, j]
+            v[i, j] = src[1, i, j] if k == FREE else speed * vprof[i, j]
+    _refresh(u, v, ukind, vkind)
+    if has_d:
+        for i in range(nx):
+            for j in range(ny):
+                d[i, j] = src[2, i, j] if fluid[i, j] else 0.0
+
+
+@njit(cache=True, nogil=True)
+def _advect(u, v, d, big_u, big_v, big_d, ukind, vkind, fluid, c, gu, gv, gd, has_d):
+    """Step 1 on the free faces and fluid cells, from the padded fields of the step's input."""
+    nx1, ny = u.shape
+    nx = nx1 - 1
+    for i in range(nx1):
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                x, y = float(i), j + 0.5
+                px = x - c * _sample(big_u, x, y + 0.5, gu)
+                py = y - c * _sample(big_v, x + 0.5, y, gv)
+                u[i, j] = _sample(big_u, px, py + 0.5, gu)
+    for i in range(nx):
+        for j in range(ny + 1):
+            if vkind[i, j] == FREE:
+                x, y = i + 0.5, float(j)
+                px = x - c * _sample(big_u, x, y + 0.5, gu)
+                py = y - c * _sample(big_v, x + 0.5, y, gv)
+                v[i, j] = _sample(big_v, px + 0.5, py, gv)
+    if has_d:
+        for i in range(nx):
+            for j in range(ny):
+                if fluid[i, j]:
+                    x, y = i + 0.5, j + 0.5
+                    px = x - c * _sample(big_u, x, y + 0.5, gu)
+                    py = y - c * _sample(big_v, x + 0.5, y, gv)
+                    d[i, j] = _sample(big_d, px + 0.5, py + 0.5, gd)
+    _refresh(u, v, ukind, vkind)
+
+
+@njit(cache=True, nogil=True)
+def _advect_adjoint(ub, vb, db, big_u, big_v, big_d, bu, bv, bd, ukind, vkind, fluid, c,
+                    gu, gv, gd, has_d):
+    """Transpose of :func:`_advect`: the free cotangents move into bu, bv, bd (padded)."""
+    nx1, ny = ub.shape
+    nx = nx1 - 1
+    for i in range(nx1):
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                g = ub[i, j]
+                ub[i, j] = 0.0
+                x, y = float(i), j + 0.5
+                px = x - c * _sample(big_u, x, y + 0.5, gu)
+                py = y - c * _sample(big_v, x + 0.5, y, gv)
+                ax, ay = _sample_adjoint(big_u, bu, px, py + 0.5, gu, g)
+                _sample_adjoint(big_u, bu, x, y + 0.5, gu, -c * ax)
+                _sample_adjoint(big_v, bv, x + 0.5, y, gv, -c * ay)
+    for i in range(nx):
+        for j in range(ny + 1):
+            if vkind[i, j] == FREE:
+                g = vb[i, j]
+                vb[i, j] = 0.0
+                x, y = i + 0.5, float(j)
+                px = x - c * _sample(big_u, x, y + 0.5, gu)
+                py = y - c * _sample(big_v, x + 0.5, y, gv)
+                ax, ay = _sample_adjoint(big_v, bv, px + 0.5, py, gv, g)
+                _sample_adjoint(big_u, bu, x, y + 0.5, gu, -c * ax)
+                _sample_adjoint(big_v, bv, x + 0.5, y, gv, -c * ay)
+    if has_d:
+        for i in range(nx):
+            for j in range(ny):
+                if fluid[i, j]:
+                    g = db[i, j]
+                    db[i, j] = 0.0
+                    x, y = i + 0.5, j + 0.5
+                    px = x - c * _sample(big_u, x, y + 0.5, gu)
+                    py = y - c * _sample(big_v, x + 0.5, y, gv)
+                    ax, ay = _sample_adjoint(big_d, bd, px + 0.5, py + 0.5, gd, g)
+                    _sample_adjoint(big_u, bu, x, y + 0.5, gu, -c * ax)
+                    _sample_adjoint(big_v, bv, x + 0.5, y, gv, -c * ay)
+
+
+@njit(cache=True, nogil=True)
+def _laplacian_u(big, i, j, px):
+    """The 5-point Laplacian (times h²) of u at free face (i, j), from the padded field.
+    An outflow face (i = 0 or nx, not periodic) mirrors itself across the side."""
+    nx = big.shape[0] - 1
+    im = i - 1 if i > 0 else (nx - 1 if px else i)
+    ip = i + 1 if i < nx else i
+    return (big[im, j + 1] + big[ip, j + 1] + big[i, j] + big[i, j + 2]
+            - 4.0 * big[i, j + 1]), im, ip
+
+
+@njit(cache=True, nogil=True)
+def _laplacian_v(big, i, j, py):
+    """As :func:`_laplacian_u`, for v at free face (i, j)."""
+    ny = big.shape[1] - 1
+    jm = j - 1 if j > 0 else (ny - 1 if py else j)
+    jp = j + 1 if j < ny else j
+    return (big[i, j] + big[i + 2, j] + big[i + 1, jm] + big[i + 1, jp]
+            - 4.0 * big[i + 1, j]), jm, jp
+
+
+@njit(cache=True, nogil=True)
+def _buoyancy_cells(j, ny, py):
+    """The cells below and above v face j (a side's face uses its one cell, or wraps)."""
+    lo = j - 1 if j > 0 else (ny - 1 if py else 0)
+    hi = j if j < ny else (0 if py else ny - 1)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _forward_step(src, dst, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind, vkind, uprof,
+                  vprof, fluid, cell_index, gu, gv, gd, fac, work, project):
+    """One step from ``src`` (C, nx + 1, ny + 1) into ``dst`` (if ``project``), keeping the
+    intermediate fields in ``work`` = (u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs,
+    phi, scratch) for the adjoint."""
+    u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch = work
+    nx1, ny = u.shape
+    nx = nx1 - 1
+    nu, buoy, speed = p[0], p[1], p[2]
+    has_d = src.shape[0] > 2
+    px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
+    _begin(src, u, v, d, ukind, vkind, uprof, vprof, fluid, speed, has_d)
+    _pad_u(u, big_u, sides, lid)
+    _pad_v(v, big_v, sides, lid)
+    if has_d:
+        _pad_d(d, big_d, px, py)
+    _advect(u, v, d1, big_u, big_v, big_d, ukind, vkind, fluid, c, gu, gv, gd, has_d)
+    _pad_u(u, big_u1, sides, lid)
+    _pad_v(v, big_v1, sides, lid)
+    if not project:
+        return
+    kd = kdiff * nu
+    controlled = ctrl.shape[0] > 0
+    for i in range(nx1):
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                u[i, j] += kd * _laplacian_u(big_u1, i, j, px)[0]
+                if controlled:
+                    u[i, j] += dt * ctrl[k, bi, 0, i, j]
+    for i in range(nx):
+        for j in range(ny + 1):
+            if vkind[i, j] == FREE:
+                v[i, j] += kd * _laplacian_v(big_v1, i, j, py)[0]
+                if controlled:
+                    v[i, j] += dt * ctrl[k, bi, 1, i, j]
+                if has_d:
+                    lo, hi = _buoyancy_cells(j, ny, py)
+                    v[i, j] += dt * buoy * 0.5 * (d1[i, lo] + d1[i, hi])
+    _refresh(u, v, ukind, vkind)
+    # the projection
+    for i in range(nx):
+        for j in range(ny):
+            q = cell_index[i, j]
+            if q >= 0:
+                rhs[q] = -(u[i + 1, j] - u[i, j] + v[i, j + 1] - v[i, j])
+    _solve(rhs, phi, scratch, *fac)
+    for i in range(nx1):
+        lo, hi = _face_cells(i, nx, px)
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                a = phi[cell_index[lo, j]] if lo >= 0 else 0.0
+                b = phi[cell_index[hi, j]] if hi >= 0 else 0.0
+                u[i, j] -= b - a
+    for j in range(ny + 1):
+        lo, hi = _face_cells(j, ny, py)
+        for i in range(nx):
+            if vkind[i, j] == FREE:
+                a = phi[cell_index[i, lo]] if lo >= 0 else 0.0
+                b = phi[cell_index[i, hi]] if hi >= 0 else 0.0
+                v[i, j] -= b - a
+    _refresh(u, v, ukind, vkind)
+    dst[:] = 0.0
+    dst[0, :, :ny] = u
+    dst[1, :nx, :] = v
+    if has_d:
+        for i in range(nx):
+            for j in range(ny):
+                if fluid[i, j]:
+                    dst[2, i, j] = d1[i, j] + (dt * ctrl[k, bi, 2, i, j] if controlled else 0.0)
+
+
+@njit(cache=True, nogil=True)
+def ins_forward(states, n, ctrl, p, dt, c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid,
+                cell_index, gu, gv, gd, fac, work):
+    nslot, nbatch = states.shape[0], states.shape[1]
+    for bi in range(nbatch):
+        for k in range(n):
+            _forward_step(states[k % nslot, bi], states[(k + 1) % nslot, bi], ctrl, k, bi, p, dt,
+                          c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid, cell_index,
+                          gu, gv, gd, fac, work, True)
+
+
+@njit(cache=True, nogil=True)
+def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdiff, sides, lid,
+                ukind, vkind, uprof, vprof, fluid, cell_index, gu, gv, gd, fac, work, bwork):
+    m, nbatch = states.shape[0], states.shape[1]
+    u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch = work
+    ub, vb, db, bu, bv, bd, phib = bwork
+    nx1, ny = u.shape
+    nx = nx1 - 1
+    nu, buoy = p[0], p[1]
+    has_d = states.shape[2] > 2
+    px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
+    kd = kdiff * nu
+    controlled = cbar.shape[0] > 0
+    for bi in range(nbatch):
+        out = ubar[bi]
+        for k in range(m - 1, -1, -1):
+            _forward_step(states[k, bi], out, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind,
+                          vkind, uprof, vprof, fluid, cell_index, gu, gv, gd, fac, work, False)
+            ub[:] = out[0, :, :ny]
+            vb[:] = out[1, :nx, :]
+            if has_d:
+                for i in range(nx):
+                    for j in range(ny):
+                        db[i, j] = out[2, i, j] if fluid[i, j] else 0.0
+            # the projection: u −= G φ, φ = M⁻¹ (−D u), then the copies
+            _fold(ub, vb, ukind, vkind)
+            rhs[:] = 0.0
+            for i in range(nx1):
+                lo, hi = _face_cells(i, nx, px)
+                for j in range(ny):
+                    if ukind[i, j] == FREE:
+                        if lo >= 0:
+                            rhs[cell_index[lo, j]] += ub[i, j]
+                        if hi >= 0:
+                            rhs[cell_index[hi, j]] -= ub[i, j]
+            for j in range(ny + 1):
+                lo, hi = _face_cells(j, ny, py)
+                for i in range(nx):
+                    if vkind[i, j] == FREE:
+                        if lo >= 0:
+                            rhs[cell_index[i, lo]] += vb[i, j]
+                        if hi >= 0:
+                            rhs[cell_index[i, hi]] -= vb[i, j]
+            _solve(rhs, phib, scratch, *fac)
+            for i in range(nx):
+                for j in range(ny):
+                    q = cell_index[i, j]
+                    if q >= 0:
+                        y = phib[q]
+                        ub[i + 1, j] -= y
+                        ub[i, j] += y
+                        vb[i, j + 1] -= y
+                        vb[i, j] += y
+            # the forces, the buoyancy and the viscosity
+            _fold(ub, vb, ukind, vkind)
+            if controlled and has_d:
+                for i in range(nx):
+                    for j in range(ny):
+                        if fluid[i, j]:
+                            cbar[k, bi, 2, i, j] = dt * db[i, j]
+            bu[:] = 0.0
+            bv[:] = 0.0
+            for i in range(nx1):
+                for j in range(ny):
+                    if ukind[i, j] == FREE:
+                        g = ub[i, j]
+                        if controlled:
+                            cbar[k, bi, 0, i, j] = dt * g
+                        lap, im, ip = _laplacian_u(big_u1, i, j, px)
+                        if want_p:
+                            pbar[0] += kdiff * g * lap
+                        g *= kd
+                        bu[im, j + 1] += g
+                        bu[ip, j + 1] += g
+                        bu[i, j] += g
+                        bu[i, j + 2] += g
+                        bu[i, j + 1] -= 4.0 * g
+            for i in range(nx):
+                for j in range(ny + 1):
+                    if vkind[i, j] == FREE:
+                        g = vb[i, j]
+                        if controlled:
+                            cbar[k, bi, 1, i, j] = dt * g
+                        if has_d:
+                            lo, hi = _buoyancy_cells(j, ny, py)
+                            if want_p:
+                                pbar[1] += dt * g * 0.5 * (d1[i, lo] + d1[i, hi])
+                            db[i, lo] += dt * buoy * 0.5 * g
+                            db[i, hi] += dt * buoy * 0.5 * g
+                        lap, jm, jp = _laplacian_v(big_v1, i, j, py)
+                        if want_p:
+                            pbar[0] += kdiff * g * lap
+                        g *= kd
+                        bv[i, j] += g
+                        bv[i + 2, j] += g
+                        bv[i + 1, jm] += g
+                        bv[i + 1, jp] += g
+                        bv[i + 1, j] -= 4.0 * g
+            _unpad_u(bu, ub, sides)
+            _unpad_v(bv, vb, sides)
+            # the advection
+            _fold(ub, vb, ukind, vkind)
+            bu[:] = 0.0
+            bv[:] = 0.0
+            bd[:] = 0.0
+            _advect_adjoint(ub, vb, db, big_u, big_v, big_d, bu, bv, bd, ukind, vkind, fluid, c,
+                            gu, gv, gd, has_d)
+            _unpad_u(bu, ub, sides)
+            _unpad_v(bv, vb, sides)
+            if has_d:
+                _unpad_d(bd, db, px, py)
+            # the boundary values
+            _fold(ub, vb, ukind, vkind)
+            out[:] = 0.0
+            for i in range(nx1):
+                for j in range(ny):
+                    if ukind[i, j] == FREE:
+                        out[0, i, j] = ub[i, j]
+                    elif want_p and ukind[i, j] == FIXED:
+                        pbar[2] += ub[i, j] * uprof[i, j]
+            for i in range(nx):
+                for j in range(ny + 1):
+                    if vkind[i, j] == FREE:
+                        out[1, i, j] = vb[i, j]
+                    elif want_p and vkind[i, j] == FIXED:
+                        pbar[2] += vb[i, j] * vprof[i, j]
+            if has_d:
+                for i in range(nx):
+                    for j in range(ny):
+                        if fluid[i, j]:
+                            out[2, i, j] = db[i, j]
+            if cmap[k] >= 0:
+                out += cot[cmap[k], bi]
+
+
+# ------------------------------------------------------------------ geometry
+def cylinder(nx: int, ny: int, center: tuple[float, float], radius: float) -> np.ndarray:
+    """Solid-cell mask (nx, ny) of a disc: the cells whose centres lie within ``radius`` of
+    ``center``, all in cell widths from the lower left corner."""
+    x = np.arange(nx)[:, None] + 0.5 - center[0]
+    y = np.arange(ny)[None, :] + 0.5 - center[1]
+    return x**2 + y**2 <= radius**2
+
+
+class _Geometry:
+    """Face kinds, inflow profiles, fluid cells and the factorised pressure matrix of a scene;
+    raises :class:`UserError` for a geometry that cannot be projected."""
+
+    def __init__(self, name: str, nx: int, ny: int, sides: tuple[int, ...], solid: np.ndarray,
+                 profile: str):
+        self.fluid = ~solid
+        if not self.fluid.any():
+            raise UserError(f"{name}: the obstacle covers every cell; leave at least one fluid "
+                            "cell")
+        px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
+        ukind = np.zeros((nx + 1, ny), dtype=np.int8)
+        vkind = np.zeros((nx, ny + 1), dtype=np.int8)
+        uprof = np.zeros((nx + 1, ny))
+        vprof = np.zeros((nx, ny + 1))
+        shape_x = _profile(profile, ny)
+        shape_y = _profile(profile, nx)
+        for i in range(nx + 1):
+            lo, hi = _face_cells(i, nx, px)
+            for j in range(ny):
+                ukind[i, j], uprof[i, j] = _face_kind(
+                    name, i, nx, lo, hi, self.fluid[lo, j] if lo >= 0 else None,
+                    self.fluid[hi, j] if hi >= 0 else None, sides[0], sides[1], shape_x[j],
+                    "left" if i == 0 else "right")
+        for j in range(ny + 1):
+            lo, hi = _face_cells(j, ny, py)
+            for i in range(nx):
+                vkind[i, j], vprof[i, j] = _face_kind(
+                    name, j, ny, lo, hi, self.fluid[i, lo] if lo >= 0 else None,
+                    self.fluid[i, hi] if hi >= 0 else None, sides[2], sides[3], shape_y[i],
+                    "bottom" if j == 0 else "top")
+        self.ukind, self.vkind, self.uprof, self.vprof = ukind, vkind, uprof, vprof
+        self.cell_index = np.full((nx, ny), -1, dtype=np.int64)
+        self.cell_index[self.fluid] = np.arange(int(self.fluid.sum()))
+        self.matrix, self.factors = self._factorise(name, nx, ny, px, py)
+
+    def _factorise(self, name, nx, ny, px, py):
+        """M = −D G on the fluid cells, pinned once in each region without an outflow."""
+        ci, n = self.cell_index, int(self.fluid.sum())
+        rows, cols, diag = [], [], np.zeros(n)
+        dirichlet = np.zeros(n, dtype=bool)
+        influx = np.zeros(n)
+
+        def link(kind, a, b, prof, sign):
+            # a face between cell a (below/left) and cell b (above/right), either may be -1
+            if kind != FREE:
+                if a >= 0:
+                    influx[a] -= sign * prof
+                if b >= 0:
+                    influx[b] += sign * prof
+                return
+            for q in (a, b):
+                if q >= 0:
+                    diag[q] += 1.0
+            if a >= 0 and b >= 0:
+                rows.extend((a, b))
+                cols.extend((b, a))
+            else:
+                dirichlet[a if a >= 0 else b] = True
+
+        for i in range(nx + 1):
+            lo, hi = _face_cells(i, nx, px)
+            for j in range(ny):
+                if self.ukind[i, j] != COPY:
+                    link(self.ukind[i, j], ci[lo, j] if lo >= 0 else -1,
+                         ci[hi, j] if hi >= 0 else -1, self.uprof[i, j], 1.0)
+        for j in range(ny + 1):
+            lo, hi = _face_cells(j, ny, py)
+            for i in range(nx):
+                if self.vkind[i, j] != COPY:
+                    link(self.vkind[i, j], ci[i, lo] if lo >= 0 else -1,
+                         ci[i, hi] if hi >= 0 else -1, self.vprof[i, j], 1.0)
+        adjacency = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+        count, label = connected_components(adjacency, directed=False)
+        for region in range(count):
+            cells = np.nonzero(label == region)[0]
+            if dirichlet[cells].any():
+                continue
+            net = influx[cells].sum()
+            if abs(net) > 1e-9 * max(1.0, np.abs(influx[cells]).sum()):
+                raise UserError(
+                    f"{name}: the inflow puts a net flux of {net:.6g} (per unit inflow_speed, "
+                    "in cell widths) into a region of fluid with no outflow, which cannot stay "
+                    "incompressible; give that region an outflow side or balance the inflow")
+            diag[cells[0]] += 1.0
+        matrix = (sp.csc_matrix((-np.ones(len(rows)), (rows, cols)), shape=(n, n))
+                  + sp.diags(diag)).tocsc()
+        lu = splu(matrix)
+        lower, upper = lu.L.tocsc(), lu.U.tocsc()
+        lower.sort_indices()
+        upper.sort_indices()
+        lstrict = sp.tril(lower, -1).tocsc()
+        ustrict = sp.triu(upper, 1).tocsc()
+        factors = (lstrict.indptr.astype(np.int64), lstrict.indices.astype(np.int64),
+                   lstrict.data, ustrict.indptr.astype(np.int64),
+                   ustrict.indices.astype(np.int64), ustrict.data, upper.diagonal().copy(),
+                   lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
+        return matrix, factors
+
+
+def _profile(profile: str, n: int) -> np.ndarray:
+    """Inflow profile across a side of n faces, of mean 1 (the flux is inflow_speed times the
+    side's length): 1, or the parabola s (1 − s) at the face centres s, scaled."""
+    if profile == "uniform":
+        return np.ones(n)
+    s = (np.arange(n) + 0.5) / n
+    return s * (1.0 - s) / np.mean(s * (1.0 - s))
+
+
+def _face_kind(name, i, n, lo, hi, fluid_lo, fluid_hi, side_lo, side_hi, prof, where):
+    """Kind and inflow value (per unit speed, positive along the axis) of face i of n."""
+    if 0 < i < n:
+        return (FREE if fluid_lo and fluid_hi else FIXED), 0.0
+    side = side_lo if i == 0 else side_hi
+    cell = fluid_hi if i == 0 else fluid_lo
+    if side == PERIODIC:
+        if i == n:
+            return COPY, 0.0
+        return (FREE if fluid_lo and fluid_hi else FIXED), 0.0
+    if side == OUTFLOW:
+        return (FREE if cell else FIXED), 0.0
+    if side == INFLOW:
+        if not cell and prof != 0.0:
+            raise UserError(f"{name}: an obstacle covers the {where} inflow; move the obstacle "
+                            "off the inflow side or make that side a wall")
+        return FIXED, prof if i == 0 else -prof
+    return FIXED, 0.0
+
+
+# ------------------------------------------------------------------ the stepper
+@register
+class Incompressible2D(Stepper):
+    """Incompressible Navier–Stokes on a staggered grid with walls, lids, inflow, outflow,
+    periodic sides and obstacles: semi-Lagrangian advection, explicit viscosity, an optional
+    smoke density with Boussinesq buoyancy and an exact pressure projection (factorised once);
+    parameters ``nu``, ``buoyancy`` (with density), ``inflow_speed`` (with an inflow side)."""
+
+    name = "incompressible2d-sl"
+    point_cost = 40.0
+    space = {
+        "nx": Choice((3, 5, 8)),
+        "ny": Choice((3, 4, 6)),
+        "boundaries": Choice((
+            "inflow outflow wall wall", "wall wall wall lid", "periodic periodic slip slip",
+            "periodic periodic periodic periodic", "outflow inflow slip lid",
+            "wall slip inflow outflow", "periodic periodic inflow outflow",
+        )),
+        "profile": Choice(PROFILES),
+        "obstacle": Choice((None, "box")),
+        "density": Choice((False, True)),
+        "nu": Range(0.005, 0.05),
+        "buoyancy": Range(-1.0, 1.0),
+        "inflow_speed": Range(0.5, 1.5),
+        "dt": Range(0.01, 0.05),
+    }
+
+    def __init__(
+        self,
+        nx: int = 32,
+        ny: int = 32,
+        length: float = 1.0,
+        dt: float = 0.01,
+        nu: float = 0.01,
+        boundaries: str = "wall wall wall lid",
+        lid_speed: float = 1.0,
+        inflow_speed: float = 1.0,
+        profile: str = "uniform",
+        obstacle: np.ndarray | str | None = None,
+        density: bool = False,
+        buoyancy: float = 0.0,
+    ):
+        name = self.name
+        nx = validate.integer(name, "nx", nx, ge=1, why="cells along x")
+        ny = validate.integer(name, "ny", ny, ge=1, why="cells along y")
+        self.nx, self.ny = nx, ny
+        self.length = validate.number(name, "length", length, gt=0, why="the box's x extent")
+        self.h = self.length / nx
+        self.dt = validate.number(name, "dt", dt, gt=0)
+        self.lid_speed = validate.number(name, "lid_speed", lid_speed)
+        nu = validate.number(name, "nu", nu, ge=0, why="the kinematic viscosity")
+        inflow_speed = validate.number(name, "inflow_speed", inflow_speed)
+        buoyancy = validate.number(name, "buoyancy", buoyancy)
+        self.density = validate.flag(name, "density", density)
+        self.profile = validate.choice(name, "profile", profile, PROFILES)
+        self.boundaries = self._sides(boundaries)
+        self.sides = np.array([SIDES.index(s) for s in self.boundaries], dtype=np.int64)
+        self.lid = np.array([self.lid_speed if s == "lid" else 0.0 for s in self.boundaries])
+        # a lid moves along its side: bottom/top lids move in +x, left/right lids in +y
+        if abs(self.lid_speed) * self.dt / self.h > MAX_COURANT and "lid" in self.boundaries:
+            raise ValueError(
+                f"{name}: dt = {self.dt:g} is beyond the advective limit for the lid: "
+                f"dt ≤ h/|lid_speed| = {MAX_COURANT * self.h / abs(self.lid_speed):.6g} "
+                "(Courant number 1: the semi-Lagrangian backtrace may cross one cell at most)")
+        solid = self._obstacle(obstacle)
+        self.solid = solid
+        self.geometry = _Geometry(name, nx, ny, tuple(self.sides), solid, self.profile)
+        self.has_inflow = "inflow" in self.boundaries
+        self._peak_profile = float(max(np.abs(self.geometry.uprof).max(),
+                                       np.abs(self.geometry.vprof).max()))
+        self.grid_shape = (nx + 1, ny + 1)
+        self.channels = 3 if self.density else 2
+        self.control_shape = (self.channels, nx + 1, ny + 1)
+        names, values = ["nu"], [nu]
+        if self.density:
+            names.append("buoyancy")
+            values.append(buoyancy)
+        if self.has_inflow:
+            names.append("inflow_speed")
+            values.append(inflow_speed)
+        self.param_names, self.param_values = tuple(names), tuple(values)
+        self.check_params(np.array(values))
+        px, py = self.sides[0] == PERIODIC, self.sides[2] == PERIODIC
+        self._geo_u = np.array([0.0, nx, px, 1.0, ny, py])
+        self._geo_v = np.array([1.0, nx, px, 0.0, ny, py])
+        self._geo_d = np.array([1.0, nx, px, 1.0, ny, py])
+
+    def _sides(self, boundaries: Any) -> tuple[str, ...]:
+        name = self.name
+        if not isinstance(boundaries, str):
+            raise TypeError(f"{name}: boundaries must be a string of four side kinds (left "
+                            f"right bottom top), got {type(boundaries).__name__}")
+        sides = tuple(boundaries.split())
+        bad = [s for s in sides if s not in SIDES]
+        if len(sides) != 4 or bad:
+            raise ValueError(
+                f"{name}: boundaries must name four sides (left right bottom top), each one of "
+                f"{', '.join(SIDES)}; got {boundaries!r}")
+        for a, b, axis in ((0, 1, "left and right"), (2, 3, "bottom and top")):
+            if (sides[a] == "periodic") != (sides[b] == "periodic"):
+                raise ValueError(f"{name}: boundaries: periodic sides come in pairs; make both "
+                                 f"{axis} periodic or neither (got {boundaries!r})")
+        return sides
+
+    def _obstacle(self, obstacle: Any) -> np.ndarray:
+        nx, ny, name = self.nx, self.ny, self.name
+        if obstacle is None:
+            return np.zeros((nx, ny), dtype=bool)
+        if isinstance(obstacle, str):
+            kind = validate.choice(name, "obstacle", obstacle, OBSTACLES)
+            if kind == "cylinder":  # the wake scene's disc: a quarter of the height across
+                return cylinder(nx, ny, (ny / 2, ny / 2), ny / 8)
+            solid = np.zeros((nx, ny), dtype=bool)  # a box over the middle third
+            x0, y0 = max(1, nx // 3), max(1, ny // 3)
+            solid[x0: max(x0 + 1, 2 * nx // 3), y0: max(y0 + 1, 2 * ny // 3)] = True
+            return solid
+        mask = np.asarray(obstacle)
+        if mask.dtype != bool or mask.shape != (nx, ny):
+            raise ValueError(f"{name}: obstacle must be None, one of {', '.join(OBSTACLES)} or a "
+                             f"boolean mask of shape ({nx}, {ny}) (True: solid cell), got "
+                             f"{mask.dtype} of shape {mask.shape}")
+        return mask.copy()
+
+    @classmethod
+    def default(cls) -> Incompressible2D:
+        return cls(nx=8, ny=6, dt=0.02, nu=0.02, boundaries="inflow outflow wall wall",
+                   profile="parabolic", obstacle="box", density=True, buoyancy=0.5)
+
+    @classmethod
+    def benchmark_scene(cls, n: int) -> Incompressible2D:
+        """The wake behind a cylinder in a channel of 2n × n cells, with smoke."""
+        n = validate.integer(cls.name, "n", n, ge=4)
+        return cls(nx=2 * n, ny=n, length=2.0, dt=0.5 / n, nu=0.001,
+                   boundaries="inflow outflow slip slip", obstacle="cylinder", density=True,
+                   buoyancy=0.1)
+
+    def check_params(self, p: np.ndarray) -> None:
+        nu = validate.number(self.name, "nu", p[0], ge=0, why="the kinematic viscosity")
+        if nu * self.dt / self.h**2 > MAX_DIFFUSION:
+            raise ValueError(
+                f"{self.name}: dt = {self.dt:g} with nu = {nu:g} is beyond the explicit "
+                f"viscosity's stability limit: dt ≤ h²/(4 nu) = "
+                f"{MAX_DIFFUSION * self.h**2 / nu:.6g} (h = {self.h:g})")
+        if self.has_inflow:
+            speed = abs(float(p[-1])) * self._peak_profile
+            if speed * self.dt / self.h > MAX_COURANT:
+                raise ValueError(
+                    f"{self.name}: dt = {self.dt:g} is beyond the advective limit for the "
+                    f"inflow: dt ≤ h/(peak inflow speed) = {MAX_COURANT * self.h / speed:.6g} "
+                    "(Courant number 1: the semi-Lagrangian backtrace may cross one cell at "
+                    "most)")
+
+    def check_state(self, u: np.ndarray, what: str = "u0") -> np.ndarray:
+        """As :meth:`Stepper.check_state`, and the velocity's Courant number must be ≤ 1."""
+        u = super().check_state(u, what)
+        if u.shape[0]:
+            top = max(np.abs(u[:, 0, :, : self.ny]).max(), np.abs(u[:, 1, : self.nx]).max())
+            if top * self.dt / self.h > MAX_COURANT:
+                raise ValueError(
+                    f"{self.name}: {what} moves at up to {top:.6g}, beyond the advective limit "
+                    f"of dt = {self.dt:g}: the speed must stay ≤ h/dt = "
+                    f"{MAX_COURANT * self.h / self.dt:.6g} (Courant number 1); lower dt")
+        return u
+
+    def random_state(
+        self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64
+    ) -> np.ndarray:
+        """Velocities uniform in ± min(1, ½ h/Δt) and (with density) a density in [0, 1]; the
+        spare entries zero."""
+        u = np.zeros(self.state_shape(batch))
+        top = min(1.0, 0.5 * MAX_COURANT * self.h / self.dt)
+        u[:, 0, :, : self.ny] = rng.uniform(-top, top, (batch, self.nx + 1, self.ny))
+        u[:, 1, : self.nx, :] = rng.uniform(-top, top, (batch, self.nx, self.ny + 1))
+        if self.density:
+            u[:, 2, : self.nx, : self.ny] = rng.uniform(0.0, 1.0, (batch, self.nx, self.ny))
+        return u.astype(dtype)
+
+    def divergence(self, u: np.ndarray) -> np.ndarray:
+        """The discrete divergence (B, nx, ny) of states u (B, C, nx + 1, ny + 1), in 1/time,
+        on the fluid cells (zero in solid cells)."""
+        u = np.asarray(u)
+        nx, ny = self.nx, self.ny
+        div = (np.diff(u[:, 0, :, :ny], axis=1) + np.diff(u[:, 1, :nx, :], axis=2)) / self.h
+        return np.where(self.geometry.fluid, div, 0.0)
+
+    def solve_pressure(self, rhs: np.ndarray) -> np.ndarray:
+        """M⁻¹ rhs (one value per fluid cell, in the order of ``geometry.cell_index``): the
+        solve the projection and its adjoint run, with the scene's factors."""
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        x, scratch = np.zeros_like(rhs), np.zeros_like(rhs)
+        _solve(rhs, x, scratch, *self.geometry.factors)
+        return x
+
+    # ---------------------------------------------------------------- kernels
+    def _kernel_args(self, dtype: np.dtype, p: np.ndarray) -> tuple:
+        g = self.geometry
+        full = np.zeros(3, dtype=p.dtype)
+        full[0] = p[0]
+        if self.density:
+            full[1] = p[1]
+        if self.has_inflow:
+            full[2] = p[-1]
+        real = np.dtype(np.float64) if dtype.kind == "c" else dtype
+        return (full, real.type(self.dt), real.type(self.dt / self.h),
+                real.type(self.dt / self.h**2), self.sides, self.lid.astype(real), g.ukind,
+                g.vkind, g.uprof.astype(real), g.vprof.astype(real), g.fluid, g.cell_index,
+                self._geo_u, self._geo_v, self._geo_d, g.factors)
+
+    def _work(self, dtype: np.dtype) -> tuple:
+        nx, ny, n = self.nx, self.ny, int(self.geometry.fluid.sum())
+        solve = np.result_type(dtype, np.float64)
+        return (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
+                np.zeros((nx, ny), dtype), np.zeros((nx + 1, ny + 2), dtype),
+                np.zeros((nx + 2, ny + 1), dtype), np.zeros((nx + 2, ny + 2), dtype),
+                np.zeros((nx + 1, ny + 2), dtype), np.zeros((nx + 2, ny + 1), dtype),
+                np.zeros((nx, ny), dtype), np.zeros(n, solve), np.zeros(n, solve),
+                np.zeros(n, solve))
+
+    def _forward(self, states, n, ctrl, p):
+        ins_forward(states, n, ctrl, *self._kernel_args(states.dtype, p),
+                    self._work(states.dtype))
+
+    def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
+        dtype = ubar.dtype
+        nx, ny, n = self.nx, self.ny, int(self.geometry.fluid.sum())
+        bwork = (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
+                 np.zeros((nx, ny), dtype), np.zeros((nx + 1, ny + 2), dtype),
+                 np.zeros((nx + 2, ny + 1), dtype), np.zeros((nx + 2, ny + 2), dtype),
+                 np.zeros(n, np.result_type(dtype, np.float64)))
+        full = np.zeros(3)
+        pfull, *args = self._kernel_args(dtype, p)
+        ins_adjoint(states, ctrl, pfull, cot, cmap, ubar, cbar, full, want_p, *args,
+                    self._work(dtype), bwork)
+        if want_p:
+            pbar[0] += full[0]
+            if self.density:
+                pbar[1] += full[1]
+            if self.has_inflow:
+                pbar[-1] += full[2]
