@@ -1,0 +1,116 @@
+"""Speed of the staggered-grid incompressible Navier–Stokes solver: forward and gradient.
+
+    python benchmarks/incompressible.py [--n 32 64] [--batch 1] [--steps 50] [--repeats 3]
+                                        [--checkpoint 8] [--json PATH]
+
+Scene: ``incompressible2d-sl``'s benchmark scene at size n, the wake of a cylinder in a channel
+of 2n × n cells (inflow left, outflow right, free-slip walls) with an advected smoke density and
+buoyancy, float64, one solver thread, started from the flow after 20 steps. Per row, median
+wall time over the repeats of
+  forward_s               rollout(u0, steps)
+  gradient_s              vjp(u0, steps, ū, wrt_params=True): the forward sweep and the
+                          adjoint, every state kept
+  gradient_checkpoint_s   the same holding at most ``--checkpoint`` states (binomial
+                          checkpointing: the memory stays flat in the number of steps)
+and ``peak_mib``, the largest memory (tracemalloc) the checkpointed gradient allocates,
+for ``steps`` and for 4 × ``steps`` (``peak_mib_4x``). The optional peer, PhiFlow on the CPU,
+is measured on the same scene when it is installed (keys ``peer``, ``peer_forward_s``,
+``peer_gradient_s``); otherwise the script says so and writes no peer keys.
+``--json PATH`` writes the rows as a JSON list.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import time
+import tracemalloc
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from adjointsim import get, parallel  # noqa: E402
+
+NAME = "incompressible2d-sl"
+
+
+def median_time(fn, repeats: int) -> float:
+    fn()  # compiled (or loaded from the cache) and warm before the clock starts
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def peak_mib(fn) -> float:
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        fn()
+        return (tracemalloc.get_traced_memory()[1] - base) / 2**20
+    finally:
+        tracemalloc.stop()
+
+
+def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int) -> dict:
+    stepper = get(NAME).benchmark_scene(n)
+    rng = np.random.default_rng(0)
+    u0 = stepper.rollout(np.zeros(stepper.state_shape(batch)), 20)
+    u0[:, 2] = stepper.random_state(rng, batch)[:, 2]
+    w = rng.standard_normal(u0.shape)
+
+    def gradient(k: int, budget: int | None) -> None:
+        stepper.vjp(u0, k, w, wrt_params=True, checkpoint=budget)
+
+    return {
+        "solver": NAME, "nx": stepper.nx, "ny": stepper.ny, "batch": batch, "steps": steps,
+        "forward_s": median_time(lambda: stepper.rollout(u0, steps), repeats),
+        "gradient_s": median_time(lambda: gradient(steps, None), repeats),
+        "gradient_checkpoint_s": median_time(lambda: gradient(steps, checkpoint), repeats),
+        "checkpoint": checkpoint,
+        "peak_mib": peak_mib(lambda: gradient(steps, checkpoint)),
+        "peak_mib_4x": peak_mib(lambda: gradient(4 * steps, checkpoint)),
+        "state_mib": u0.nbytes / 2**20,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawTextHelpFormatter)
+    parser.add_argument("--n", type=int, nargs="+", default=[32, 64],
+                        help="channel heights (the channel is 2n × n cells)")
+    parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--checkpoint", type=int, default=8)
+    parser.add_argument("--json", type=Path, help="write the rows here")
+    args = parser.parse_args()
+    if importlib.util.find_spec("phi") is None:
+        print("PhiFlow is not installed: no peer figures (pip install phiflow to add them)")
+    else:
+        print("PhiFlow is installed, but its twin of this scene is not written yet: "
+              "no peer figures")
+    rows = []
+    with parallel.using_threads(1):
+        for n in args.n:
+            r = row(n, args.batch, args.steps, args.repeats, args.checkpoint)
+            rows.append(r)
+            print(f"{r['solver']} {r['nx']}×{r['ny']} B={r['batch']} {r['steps']} steps: "
+                  f"forward {r['forward_s']:.3f} s, gradient {r['gradient_s']:.3f} s "
+                  f"({r['gradient_s'] / r['forward_s']:.2f}× forward), checkpointed "
+                  f"{r['gradient_checkpoint_s']:.3f} s, peak {r['peak_mib']:.1f} MiB "
+                  f"({4 * r['steps']} steps: {r['peak_mib_4x']:.1f} MiB; one state "
+                  f"{r['state_mib']:.2f} MiB)", flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
