@@ -23,7 +23,8 @@ _HELPS = {
     "mode": "the unrolling schedule ONE, or a gradient flow (WIG, NOG; R, M, S, N, C)",
     "setup": "the network predicts the next state, or corrects the coarse solver's",
     "curriculum": 'stages "m:lr,m:lr,...", e.g. "1:1e-4,2:1e-5,4:1e-6"',
-    "max_iterations": "stop after this many iterations in total (0: no limit)",
+    "max_iterations": "stop after this many iterations in total, unfinished: continue with "
+                      "--resume (0: no limit)",
     "threads": THREADS_HELP,
 }
 
