@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from adjointsim.engine import CHECKPOINT, CONFIG, RESULT
 from adjointsim.files import log_axis, pyplot, save_figure, write_text
 from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
@@ -102,19 +103,14 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     """Train (resuming those a retried cell started) the cells' models as one ensemble, then
     evaluate each; returns their rows."""
     cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
-    models: list = [None] * len(cfgs)
-    for resume in (True, False):  # --resume needs a run to continue
-        idx = [k for k, d in enumerate(run_dirs) if _started(d) == resume]
-        if idx:
-            trained = train_ensemble([cfgs[k] for k in idx], resume=resume, progress=False)
-            for k, model in zip(idx, trained):
-                models[k] = model
+    # resuming an ensemble starts its members without a run beside the others
+    models = train_ensemble(cfgs, resume=any(map(_started, run_dirs)), progress=False)
     return [_row(*args) for args in zip(cells, cfgs, models, run_dirs)]
 
 
 def _started(run_dir: Path) -> bool:
     """Whether a cell's run directory holds its run (to resume, or to return as it is)."""
-    return (run_dir / "config.json").exists()
+    return any((run_dir / name).exists() for name in (CONFIG, CHECKPOINT, RESULT))
 
 
 def _row(cell: dict, cfg: TrainConfig, model, run_dir: Path) -> dict:
