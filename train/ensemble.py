@@ -37,7 +37,6 @@ import numpy as np
 import torch
 from torch import nn
 from torch.func import functional_call, stack_module_state, vmap
-from tqdm.auto import tqdm
 
 from adjointsim import engine
 from adjointsim.errors import UserError
@@ -49,7 +48,7 @@ from .evaluate import BLOW_UPS
 from .model import NeuralStepper
 from .tasks import Task
 from .threads import use_threads
-from .trainer import Run, TrainConfig, TrainData, _claim, loop
+from .trainer import StepperRun, TrainConfig, prepare
 from .unroll import GradientFlow, Update, clip_update, unrolled_loss
 
 #: config keys members of a controller ensemble may differ in
@@ -377,104 +376,89 @@ class ControllerEnsemble:
 
 
 # ----------------------------------------------------------------------------- neural steppers
-def _stepper_update(runs: list[Run], plans: list[list[dict]], data: TrainData, stack: Stack,
-                    stage: dict, wins: np.ndarray, idx: list[int]) -> None:
-    """One update of the members ``idx``, as :func:`adjointsim.train.trainer.train` makes one
-    for a separate run: the losses, gradients and their norms, the spike cutoff, Adam, the
-    history rows and the rollback guard, each member's own."""
-    cfg = runs[0].cfg
-    batches = [data.batch(runs[k].cfg, plans[k][runs[k].state["stage"]], runs[k].state, wins)
-               for k in idx]
-    for k, batch in zip(idx, batches):
-        stack.lrs[k] = batch[3]
-    leaves = stack.leaves(idx)
-    model = NeuralStepper(stack.net(leaves, len(batches[0][0])), cfg.setup,
-                          runs[0].model.solver if cfg.setup == "correction" else None,
-                          cfg.correction)
-    flow = GradientFlow(stage["flow"])
-    try:
-        frames, params, conditions = (torch.cat(t) for t in list(zip(*batches))[:3])
-        losses = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup,
-                               cfg.truncate, members=len(idx))
-        finite = torch.isfinite(losses.detach())
-        if finite.any():
-            grads = flow.backward(losses[finite].sum(), leaves).grads
-            # as clip_grad_norm_: the norm of the tensors' norms, each member's own
-            norms = torch.stack([g.flatten(1).norm(dim=1) for g in grads], 1).norm(dim=1)
-    except BLOW_UPS:  # the coarse solver refused a state some member's model made
-        if len(idx) > 1:  # whose is unknown: each member alone
-            for k in idx:
-                _stepper_update(runs, plans, data, stack, stage, wins, [k])
-            return
-        losses, finite = torch.tensor([float("nan")]), torch.tensor([False])
-    skipped = [not bool(finite[j]) or runs[k].spike(float(norms[j]))
+class StepperEnsemble:
+    """Neural-stepper runs at one point as one vectorised update (the engine's updater of an
+    ensemble): one tape and one solver call per step for every member, while each member's
+    batch, spike cutoff, history row, rollback guard and checkpoint boundary are its own run's
+    (:class:`adjointsim.train.trainer.StepperRun`)."""
+
+    def __init__(self, group: Sequence[StepperRun]):
+        self.group = list(group)
+        adam = self.group[0].optimizer.param_groups[0]
+        self.stack = Stack([p.model.net for p in self.group],
+                           [p.optimizer.param_groups[0]["lr"] for p in self.group],
+                           adam["betas"], adam["eps"])
+        for k, p in enumerate(self.group):
+            self.stack.load(k, p.model.net, p.optimizer)
+
+    def done(self) -> bool:
+        return self.group[0].done()
+
+    def update(self) -> bool:
+        stage, wins = [p.begin() for p in self.group][0]
+        self._update(stage, wins, list(range(len(self.group))))
+        return self.group[0].boundary()
+
+    def sync(self) -> None:
+        """Each member's weights, Adam state and rate into its own model and optimiser, as its
+        separate run holds them (for its checkpoint, plots and result)."""
+        for k, p in enumerate(self.group):
+            self.stack.store(k, p.model.net, p.optimizer)
+            for g in p.optimizer.param_groups:
+                g["lr"] = self.stack.lrs[k]
+
+    def _update(self, stage: dict, wins: np.ndarray, idx: list[int]) -> None:
+        """One update of the members ``idx``, as :meth:`StepperRun.update` makes one for a
+        separate run: the losses, gradients and their norms, the spike cutoff, Adam, the
+        history rows and the rollback guard, each member's own."""
+        runs, stack = self.group, self.stack
+        cfg = runs[0].config
+        batches = [runs[k].batch(wins) for k in idx]
+        for k, batch in zip(idx, batches):
+            stack.lrs[k] = batch[3]
+        leaves = stack.leaves(idx)
+        model = NeuralStepper(stack.net(leaves, len(batches[0][0])), cfg.setup,
+                              runs[0].model.solver if cfg.setup == "correction" else None,
+                              cfg.correction)
+        flow = GradientFlow(stage["flow"])
+        try:
+            frames, params, conditions = (torch.cat(t) for t in list(zip(*batches))[:3])
+            losses = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup,
+                                   cfg.truncate, members=len(idx))
+            finite = torch.isfinite(losses.detach())
+            if finite.any():
+                grads = flow.backward(losses[finite].sum(), leaves).grads
+                # as clip_grad_norm_: the norm of the tensors' norms, each member's own
+                norms = torch.stack([g.flatten(1).norm(dim=1) for g in grads], 1).norm(dim=1)
+        except BLOW_UPS:  # the coarse solver refused a state some member's model made
+            if len(idx) > 1:  # whose is unknown: each member alone
+                for k in idx:
+                    self._update(stage, wins, [k])
+                return
+            losses, finite = torch.tensor([float("nan")]), torch.tensor([False])
+        skipped = [not bool(finite[j]) or runs[k].spike(float(norms[j]))
+                   for j, k in enumerate(idx)]
+        step = [j for j, s in enumerate(skipped) if not s]
+        if step:
+            sel = torch.tensor(step)
+            stack.adam([g[sel] for g in grads], [idx[j] for j in step])
+        due = [runs[k].record(stage, batches[j][3], float(losses[j].detach()), skipped[j])
                for j, k in enumerate(idx)]
-    step = [j for j, s in enumerate(skipped) if not s]
-    if step:
-        sel = torch.tensor(step)
-        stack.adam([g[sel] for g in grads], [idx[j] for j in step])
-    due = [runs[k].record(stage, batches[j][3], float(losses[j].detach()), skipped[j])
-           for j, k in enumerate(idx)]
-    if any(due):
-        for k in idx:
-            run = runs[k]
-            stack.store(k, run.model.net, run.optimizer)
-            run.guard()
-            stack.load(k, run.model.net, run.optimizer)
-
-
-def _train_steppers(runs: list[Run], plans: list[list[dict]], data: TrainData,
-                    progress: bool) -> None:
-    cfg = runs[0].cfg
-    group = runs[0].optimizer.param_groups[0]
-    stack = Stack([r.model.net for r in runs],
-                  [r.optimizer.param_groups[0]["lr"] for r in runs], group["betas"],
-                  group["eps"])
-    for k, run in enumerate(runs):
-        stack.load(k, run.model.net, run.optimizer)
-    members = list(range(len(runs)))
-
-    def store() -> None:
-        for k, run in enumerate(runs):
-            stack.store(k, run.model.net, run.optimizer)
-            for g in run.optimizer.param_groups:
-                g["lr"] = stack.lrs[k]
-
-    def save() -> None:
-        store()
-        for run in runs:
-            run.save()
-
-    bar = tqdm(total=data.total, initial=runs[0].state["total"], unit="it",
-               disable=not progress, desc=f"train {cfg.mode} ×{len(runs)}")
-    try:
-        loop(cfg, data, runs,
-             lambda stage, wins: _stepper_update(runs, plans, data, stack, stage, wins, members),
-             save, bar)
-    except KeyboardInterrupt:
-        save()
-        raise
-    finally:
-        bar.close()
-    store()
-    for run in runs:
-        run.finish(data.plan)
+        if any(due):
+            for k in idx:
+                run = runs[k]
+                stack.store(k, run.model.net, run.optimizer)
+                run.guard()
+                stack.load(k, run.model.net, run.optimizer)
 
 
 def _stepper_ensemble(cfgs: list[TrainConfig], resume: bool, progress: bool,
                       overwrite: bool) -> list[NeuralStepper]:
-    use_threads(cfgs[0].threads)
-    for cfg in cfgs:
-        _claim(Path(cfg.out), dataclasses.asdict(cfg), resume, overwrite)
-    data = TrainData.load(cfgs[0])
-    plans = [data.plan_of(c) for c in cfgs]
-    runs = [Run.open(c, plan, resume, overwrite) for c, plan in zip(cfgs, plans)]
-    groups: dict[tuple, list[int]] = {}
-    for k, run in enumerate(runs):
-        groups.setdefault((run.state["stage"], run.state["iteration"]), []).append(k)
-    for idx in groups.values():
-        _train_steppers([runs[k] for k in idx], [plans[k] for k in idx], data, progress)
-    return [run.model for run in runs]
+    cfgs, data = prepare(cfgs)
+    runs = [StepperRun(c, data) for c in cfgs]
+    engine.run(runs, resume=resume, overwrite=overwrite, progress=progress,
+               ensemble=StepperEnsemble)
+    return [run.trained() for run in runs]
 
 
 # ----------------------------------------------------------------------------- entry point
