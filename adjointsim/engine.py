@@ -78,6 +78,11 @@ class Problem:
     HISTORIES: ClassVar[dict[str, tuple[str, ...]]] = {}
     RUN_FILES: ClassVar[tuple[str, ...]] = ()
     RESULT_KEYS: ClassVar[tuple[str, ...]] = ()
+    #: config keys added since earlier versions, and keys those versions had that are gone:
+    #: a run of an earlier version is still this command's (refused with the keys it differs
+    #: in, discarded by ``overwrite``), not somebody else's files
+    ADDED: ClassVar[tuple[str, ...]] = ()
+    RETIRED: ClassVar[tuple[str, ...]] = ()
     #: the progress bar's unit ("it", "epoch", "s")
     UNIT: ClassVar[str] = "it"
     #: the checkpoint format; None: the problem has no state to resume from (run again)
@@ -206,11 +211,13 @@ class RunDir:
         return theirs if isinstance(theirs, dict) else None
 
     def ours(self, theirs: dict) -> bool:
-        """Whether ``theirs`` is a config of this command (the same keys, a key added since
-        it was written aside)."""
-        keys = set(self.config) - set(self.free)
-        return keys - set(theirs) <= set(self.problem.RESUMABLE) and set(theirs) <= set(
-            self.config)
+        """Whether ``theirs`` is a config of this command, of this version or an earlier one
+        (keys :attr:`Problem.ADDED` since may be missing, :attr:`Problem.RETIRED` ones may be
+        there): what ``--overwrite`` may discard and ``--resume`` compares key by key."""
+        p = self.problem
+        missing = set(self.config) - set(theirs) - set(p.RESUMABLE) - set(p.ADDED)
+        extra = set(theirs) - set(self.config) - set(p.RETIRED)
+        return not missing and not extra
 
     def holds(self) -> bool:
         """Whether the directory holds a run (its config, checkpoint or result)."""

@@ -324,6 +324,7 @@ class FitRun(engine.Problem):
     history and a tick of the progress bar. It keeps no checkpoint: stopped, it is run again."""
 
     RESUMABLE = ()
+    ADDED = ("solver",)
     HISTORIES: ClassVar = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("observations.h5", "fitted.h5", "fit.png", "history.png")
     RESULT_KEYS = ("scene", "misfit", "params", "iterations")

@@ -266,6 +266,8 @@ class Controller(engine.Problem):
     :meth:`end_epoch`, as :meth:`update` does for one."""
 
     EXTENDABLE = ("epochs",)
+    ADDED = ("level", "scene")
+    RETIRED = ("poles", "target", "control_weight")
     HISTORIES = {"history.csv": HISTORY_KEYS}
     RUN_FILES = ("test_loss.png", "rollout.png")
     RESULT_KEYS = ("test_loss", "train_loss", "test_terms", "weights", "parameters", "seconds",

@@ -95,6 +95,7 @@ class HigRun(engine.Problem):
     RESUMABLE = ("threads",)
     # a finished run is continued to more: its final evaluation is not a training step
     EXTENDABLE = ("budget", "max_updates")
+    ADDED = ("scene",)
     HISTORIES: ClassVar = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("loss.png",)
     RESULT_KEYS = ("wall_s", "updates", "test_loss", "diverged")

@@ -259,6 +259,7 @@ class StepperRun(engine.Problem):
     update (:class:`adjointsim.train.ensemble.StepperEnsemble`)."""
 
     RESUMABLE = ("out", "threads", "max_iterations")
+    ADDED = ("scene",)
     HISTORIES = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("training.png", "results.json", "metrics.json", "rollout-*.png")
     RESULT_KEYS = ("iterations", "final_loss", "skipped", "rollbacks", "parameters")

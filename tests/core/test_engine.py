@@ -217,3 +217,20 @@ def test_resumed_ensemble_starts_an_added_member_fresh(tmp_path):
     assert len((tmp_path / "seed0" / "history.csv").read_text().splitlines()) == 4
     with pytest.raises(UserError, match="holds no run to continue"):
         engine.run([count(tmp_path / f"new{k}") for k in (0, 1)], resume=True, progress=False)
+
+
+def test_a_run_of_an_earlier_version_is_this_commands_not_foreign(tmp_path):
+    class Renamed(Count):
+        ADDED = ("rate",)
+        RETIRED = ("speed",)
+
+    out = tmp_path / "old"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps({"epochs": 5, "threads": 1, "speed": 0.5}))
+    (out / "checkpoint.pt").write_text("{}")
+    with pytest.raises(RunExists, match=r"another configuration \(differs in rate, speed\)"):
+        engine.run(Renamed(CountConfig(), out), resume=True, progress=False)
+    with pytest.raises(RunExists, match="another command's run"):
+        engine.run(count(out), overwrite=True, progress=False)
+    result = engine.run(Renamed(CountConfig(), out), overwrite=True, progress=False)
+    assert result["rate"] == 0.5 and "speed" not in json.loads((out / "config.json").read_text())
