@@ -18,6 +18,9 @@ Discrete (Chorin's splitting, one step from u_k to u_{k+1}; c = Δt/h):
     ghost layer holds each side's tangential condition (−u inside a no-slip wall, +u at a
     free-slip wall or an outflow, 2U − u at a lid, the opposite side when periodic) and the
     sample points are clamped into that layer (or wrapped, when periodic);
+    With ``advection="maccormack"`` (the book's ``advect.mac_cormack``) the result φ̂ is
+    corrected to φ̂ + ½ (φ − φ̂(x + Δt u(x))) and clamped to the four values of φ around the
+    backtraced point;
  2. explicit viscosity: u += ν c/h Δ_h u on the free faces (same ghost layer);
  3. forces: u += Δt f, v += Δt (f_y + b ρ̄) (ρ̄ the advected density averaged onto the face),
     ρ += Δt s;
@@ -39,8 +42,12 @@ Adjoint: every stage above is reversed in the opposite order; the projection's a
 transposed solve with the same factors (M is symmetric). The bilinear sample's derivative in its
 sample point is that of the cell it falls in (one-sided on a cell edge, zero where clamped), so
 the discrete adjoint matches the tangent of the code everywhere the sample points stay off cell
-edges (the gradients are those of a piecewise-smooth map). The adjoint recomputes each step's
-intermediate fields from its input state, not its pressure solve.
+edges (the gradients are those of a piecewise-smooth map). MacCormack's clamp adds switches
+wherever a corrected value meets a bound: its adjoint is exact too (the dot-product test holds
+to round-off), but finite differences and the Taylor test see those switches at any step size
+a long rollout allows, so the gradient checker, which runs the semi-Lagrangian default, cannot
+confirm it. The adjoint recomputes each step's intermediate fields from its input state, not
+its pressure solve.
 
 Limits, checked: ν Δt/h² ≤ ¼ (explicit viscosity) and a Courant number (speed · Δt/h) of at
 most 1 for the lid, the inflow and the initial state: a backtrace then crosses at most one cell
@@ -68,6 +75,7 @@ WALL, SLIP, LID, INFLOW, OUTFLOW, PERIODIC = range(6)
 FREE, FIXED, COPY = 0, 1, 2
 PROFILES = ("uniform", "parabolic")
 OBSTACLES = ("cylinder", "box")
+ADVECTIONS = ("semi-lagrangian", "maccormack")
 #: largest Courant number (speed · Δt / h) accepted
 MAX_COURANT = 1.0
 #: largest ν Δt / h² of the explicit viscosity (the 5-point Laplacian's limit)
@@ -283,76 +291,110 @@ def _begin(src, u, v, d, ukind, vkind, uprof, vprof, fluid, speed, has_d):
                 d[i, j] = src[2, i, j] if fluid[i, j] else 0.0
 
 
+# A field's samples sit at (i + ox, j + oy) in cell widths (u: (0, ½), v: (½, 0), the density:
+# (½, ½)), and its padded array holds sample (i, j) at index coordinates (i + ox, j + oy) + the
+# ghost layer's offset, which for all three fields is (ox, oy) again.
 @njit(cache=True, nogil=True)
-def _advect(u, v, d, big_u, big_v, big_d, ukind, vkind, fluid, c, gu, gv, gd, has_d):
-    """Step 1 on the free faces and fluid cells, from the padded fields of the step's input."""
-    nx1, ny = u.shape
-    nx = nx1 - 1
-    for i in range(nx1):
-        for j in range(ny):
-            if ukind[i, j] == FREE:
-                x, y = float(i), j + 0.5
-                px = x - c * _sample(big_u, x, y + 0.5, gu)
-                py = y - c * _sample(big_v, x + 0.5, y, gv)
-                u[i, j] = _sample(big_u, px, py + 0.5, gu)
-    for i in range(nx):
-        for j in range(ny + 1):
-            if vkind[i, j] == FREE:
-                x, y = i + 0.5, float(j)
-                px = x - c * _sample(big_u, x, y + 0.5, gu)
-                py = y - c * _sample(big_v, x + 0.5, y, gv)
-                v[i, j] = _sample(big_v, px + 0.5, py, gv)
-    if has_d:
-        for i in range(nx):
-            for j in range(ny):
-                if fluid[i, j]:
-                    x, y = i + 0.5, j + 0.5
-                    px = x - c * _sample(big_u, x, y + 0.5, gu)
-                    py = y - c * _sample(big_v, x + 0.5, y, gv)
-                    d[i, j] = _sample(big_d, px + 0.5, py + 0.5, gd)
-    _refresh(u, v, ukind, vkind)
+def _velocity(x, y, big_u, big_v, gu, gv):
+    """The velocity at (x, y) in cell widths, from the padded components."""
+    return _sample(big_u, x, y + 0.5, gu), _sample(big_v, x + 0.5, y, gv)
 
 
 @njit(cache=True, nogil=True)
-def _advect_adjoint(ub, vb, db, big_u, big_v, big_d, bu, bv, bd, ukind, vkind, fluid, c,
-                    gu, gv, gd, has_d):
-    """Transpose of :func:`_advect`: the free cotangents move into bu, bv, bd (padded)."""
-    nx1, ny = ub.shape
-    nx = nx1 - 1
-    for i in range(nx1):
-        for j in range(ny):
-            if ukind[i, j] == FREE:
-                g = ub[i, j]
-                ub[i, j] = 0.0
-                x, y = float(i), j + 0.5
-                px = x - c * _sample(big_u, x, y + 0.5, gu)
-                py = y - c * _sample(big_v, x + 0.5, y, gv)
-                ax, ay = _sample_adjoint(big_u, bu, px, py + 0.5, gu, g)
-                _sample_adjoint(big_u, bu, x, y + 0.5, gu, -c * ax)
-                _sample_adjoint(big_v, bv, x + 0.5, y, gv, -c * ay)
-    for i in range(nx):
-        for j in range(ny + 1):
-            if vkind[i, j] == FREE:
-                g = vb[i, j]
-                vb[i, j] = 0.0
-                x, y = i + 0.5, float(j)
-                px = x - c * _sample(big_u, x, y + 0.5, gu)
-                py = y - c * _sample(big_v, x + 0.5, y, gv)
-                ax, ay = _sample_adjoint(big_v, bv, px + 0.5, py, gv, g)
-                _sample_adjoint(big_u, bu, x, y + 0.5, gu, -c * ax)
-                _sample_adjoint(big_v, bv, x + 0.5, y, gv, -c * ay)
-    if has_d:
-        for i in range(nx):
-            for j in range(ny):
-                if fluid[i, j]:
-                    g = db[i, j]
-                    db[i, j] = 0.0
-                    x, y = i + 0.5, j + 0.5
-                    px = x - c * _sample(big_u, x, y + 0.5, gu)
-                    py = y - c * _sample(big_v, x + 0.5, y, gv)
-                    ax, ay = _sample_adjoint(big_d, bd, px + 0.5, py + 0.5, gd, g)
-                    _sample_adjoint(big_u, bu, x, y + 0.5, gu, -c * ax)
-                    _sample_adjoint(big_v, bv, x + 0.5, y, gv, -c * ay)
+def _velocity_adjoint(x, y, big_u, big_v, bu, bv, gu, gv, gx, gy):
+    _sample_adjoint(big_u, bu, x, y + 0.5, gu, gx)
+    _sample_adjoint(big_v, bv, x + 0.5, y, gv, gy)
+
+
+@njit(cache=True, nogil=True)
+def _advect_field(out, free, big, big_u, big_v, ox, oy, c, geo, gu, gv):
+    """Semi-Lagrangian: out = the padded field ``big`` at x − c u(x), on the ``free`` samples."""
+    for i in range(free.shape[0]):
+        for j in range(free.shape[1]):
+            if free[i, j]:
+                x, y = i + ox, j + oy
+                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
+                out[i, j] = _sample(big, x - c * vx + ox, y - c * vy + oy, geo)
+
+
+@njit(cache=True, nogil=True)
+def _advect_field_adjoint(gout, free, big, bbig, big_u, big_v, bu, bv, ox, oy, c, geo, gu, gv):
+    """Transpose of :func:`_advect_field`: the cotangents ``gout`` of the free samples move
+    into ``bbig`` (the field's) and ``bu``, ``bv`` (the velocity's); they become zero."""
+    for i in range(free.shape[0]):
+        for j in range(free.shape[1]):
+            if free[i, j]:
+                g = gout[i, j]
+                gout[i, j] = 0.0
+                x, y = i + ox, j + oy
+                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
+                ax, ay = _sample_adjoint(big, bbig, x - c * vx + ox, y - c * vy + oy, geo, g)
+                _velocity_adjoint(x, y, big_u, big_v, bu, bv, gu, gv, -c * ax, -c * ay)
+
+
+@njit(cache=True, nogil=True)
+def _bounds(q, a, b, geo):
+    """The smallest and largest of the four values around (a, b) and their indices."""
+    i, _, _ = _coord(a, q.shape[0], geo[0], geo[1], geo[2])
+    j, _, _ = _coord(b, q.shape[1], geo[3], geo[4], geo[5])
+    lo, hi = (i, j), (i, j)
+    for di in range(2):
+        for dj in range(2):
+            if q[i + di, j + dj].real < q[lo].real:
+                lo = (i + di, j + dj)
+            if q[i + di, j + dj].real > q[hi].real:
+                hi = (i + di, j + dj)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _correct_field(out, free, big, big_hat, big_u, big_v, ox, oy, c, geo, gu, gv):
+    """MacCormack: out = φ̂ + ½ (φ − φ̂(x + c u(x))) on the free samples, clamped to the values
+    of φ around the backtraced point x − c u(x). φ, φ̂: the field before and after the
+    semi-Lagrangian step, padded (``big``, ``big_hat``)."""
+    pi, pj = int(2 * ox), int(2 * oy)
+    for i in range(free.shape[0]):
+        for j in range(free.shape[1]):
+            if free[i, j]:
+                x, y = i + ox, j + oy
+                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
+                back = _sample(big_hat, x + c * vx + ox, y + c * vy + oy, geo)
+                value = big_hat[i + pi, j + pj] + 0.5 * (big[i + pi, j + pj] - back)
+                lo, hi = _bounds(big, x - c * vx + ox, y - c * vy + oy, geo)
+                if value.real < big[lo].real:
+                    value = big[lo]
+                elif value.real > big[hi].real:
+                    value = big[hi]
+                out[i, j] = value
+
+
+@njit(cache=True, nogil=True)
+def _correct_field_adjoint(gout, free, big, big_hat, bbig, bhat, big_u, big_v, bu, bv, ox, oy,
+                           c, geo, gu, gv):
+    """Transpose of :func:`_correct_field`: ``gout`` becomes the cotangent of φ̂ at the free
+    samples (zero where the value was clamped); the rest moves into ``bbig`` (φ), ``bhat``
+    (φ̂, padded) and ``bu``, ``bv`` (the velocity)."""
+    pi, pj = int(2 * ox), int(2 * oy)
+    for i in range(free.shape[0]):
+        for j in range(free.shape[1]):
+            if free[i, j]:
+                g = gout[i, j]
+                x, y = i + ox, j + oy
+                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
+                fx, fy = x + c * vx + ox, y + c * vy + oy
+                value = big_hat[i + pi, j + pj] + 0.5 * (big[i + pi, j + pj]
+                                                         - _sample(big_hat, fx, fy, geo))
+                lo, hi = _bounds(big, x - c * vx + ox, y - c * vy + oy, geo)
+                if value.real < big[lo].real:
+                    bbig[lo] += g
+                    gout[i, j] = 0.0
+                elif value.real > big[hi].real:
+                    bbig[hi] += g
+                    gout[i, j] = 0.0
+                else:
+                    bbig[i + pi, j + pj] += 0.5 * g
+                    ax, ay = _sample_adjoint(big_hat, bhat, fx, fy, geo, -0.5 * g)
+                    _velocity_adjoint(x, y, big_u, big_v, bu, bv, gu, gv, c * ax, c * ay)
 
 
 @njit(cache=True, nogil=True)
@@ -386,11 +428,12 @@ def _buoyancy_cells(j, ny, py):
 
 @njit(cache=True, nogil=True)
 def _forward_step(src, dst, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind, vkind, uprof,
-                  vprof, fluid, cell_index, gu, gv, gd, fac, work, project):
+                  vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac, mc, work, project):
     """One step from ``src`` (C, nx + 1, ny + 1) into ``dst`` (if ``project``), keeping the
-    intermediate fields in ``work`` = (u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs,
-    phi, scratch) for the adjoint."""
-    u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch = work
+    intermediate fields in ``work`` for the adjoint (see :meth:`Incompressible2D._work`);
+    ``mc``: MacCormack advection."""
+    (u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch, big_uh, big_vh,
+     big_dh) = work
     nx1, ny = u.shape
     nx = nx1 - 1
     nu, buoy, speed = p[0], p[1], p[2]
@@ -401,7 +444,20 @@ def _forward_step(src, dst, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind, vki
     _pad_v(v, big_v, sides, lid)
     if has_d:
         _pad_d(d, big_d, px, py)
-    _advect(u, v, d1, big_u, big_v, big_d, ukind, vkind, fluid, c, gu, gv, gd, has_d)
+    _advect_field(u, ufree, big_u, big_u, big_v, 0.0, 0.5, c, gu, gu, gv)
+    _advect_field(v, vfree, big_v, big_u, big_v, 0.5, 0.0, c, gv, gu, gv)
+    if has_d:
+        _advect_field(d1, fluid, big_d, big_u, big_v, 0.5, 0.5, c, gd, gu, gv)
+    _refresh(u, v, ukind, vkind)
+    if mc:
+        _pad_u(u, big_uh, sides, lid)
+        _pad_v(v, big_vh, sides, lid)
+        _correct_field(u, ufree, big_u, big_uh, big_u, big_v, 0.0, 0.5, c, gu, gu, gv)
+        _correct_field(v, vfree, big_v, big_vh, big_u, big_v, 0.5, 0.0, c, gv, gu, gv)
+        if has_d:
+            _pad_d(d1, big_dh, px, py)
+            _correct_field(d1, fluid, big_d, big_dh, big_u, big_v, 0.5, 0.5, c, gd, gu, gv)
+        _refresh(u, v, ukind, vkind)
     _pad_u(u, big_u1, sides, lid)
     _pad_v(v, big_v1, sides, lid)
     if not project:
@@ -458,21 +514,23 @@ def _forward_step(src, dst, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind, vki
 
 @njit(cache=True, nogil=True)
 def ins_forward(states, n, ctrl, p, dt, c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid,
-                cell_index, gu, gv, gd, fac, work):
+                ufree, vfree, cell_index, gu, gv, gd, fac, mc, work):
     nslot, nbatch = states.shape[0], states.shape[1]
     for bi in range(nbatch):
         for k in range(n):
             _forward_step(states[k % nslot, bi], states[(k + 1) % nslot, bi], ctrl, k, bi, p, dt,
-                          c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid, cell_index,
-                          gu, gv, gd, fac, work, True)
+                          c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid, ufree, vfree,
+                          cell_index, gu, gv, gd, fac, mc, work, True)
 
 
 @njit(cache=True, nogil=True)
 def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdiff, sides, lid,
-                ukind, vkind, uprof, vprof, fluid, cell_index, gu, gv, gd, fac, work, bwork):
+                ukind, vkind, uprof, vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac, mc,
+                work, bwork):
     m, nbatch = states.shape[0], states.shape[1]
-    u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch = work
-    ub, vb, db, bu, bv, bd, phib = bwork
+    (u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch, big_uh, big_vh,
+     big_dh) = work
+    ub, vb, db, bu, bv, bd, phib, buh, bvh, bdh = bwork
     nx1, ny = u.shape
     nx = nx1 - 1
     nu, buoy = p[0], p[1]
@@ -484,7 +542,8 @@ def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdi
         out = ubar[bi]
         for k in range(m - 1, -1, -1):
             _forward_step(states[k, bi], out, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind,
-                          vkind, uprof, vprof, fluid, cell_index, gu, gv, gd, fac, work, False)
+                          vkind, uprof, vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac,
+                          mc, work, False)
             ub[:] = out[0, :, :ny]
             vb[:] = out[1, :nx, :]
             if has_d:
@@ -572,8 +631,28 @@ def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdi
             bu[:] = 0.0
             bv[:] = 0.0
             bd[:] = 0.0
-            _advect_adjoint(ub, vb, db, big_u, big_v, big_d, bu, bv, bd, ukind, vkind, fluid, c,
-                            gu, gv, gd, has_d)
+            if mc:
+                buh[:] = 0.0
+                bvh[:] = 0.0
+                bdh[:] = 0.0
+                _correct_field_adjoint(ub, ufree, big_u, big_uh, bu, buh, big_u, big_v, bu, bv,
+                                       0.0, 0.5, c, gu, gu, gv)
+                _correct_field_adjoint(vb, vfree, big_v, big_vh, bv, bvh, big_u, big_v, bu, bv,
+                                       0.5, 0.0, c, gv, gu, gv)
+                if has_d:
+                    _correct_field_adjoint(db, fluid, big_d, big_dh, bd, bdh, big_u, big_v, bu,
+                                           bv, 0.5, 0.5, c, gd, gu, gv)
+                    _unpad_d(bdh, db, px, py)
+                _unpad_u(buh, ub, sides)
+                _unpad_v(bvh, vb, sides)
+                _fold(ub, vb, ukind, vkind)
+            _advect_field_adjoint(ub, ufree, big_u, bu, big_u, big_v, bu, bv, 0.0, 0.5, c, gu, gu,
+                                  gv)
+            _advect_field_adjoint(vb, vfree, big_v, bv, big_u, big_v, bu, bv, 0.5, 0.0, c, gv, gu,
+                                  gv)
+            if has_d:
+                _advect_field_adjoint(db, fluid, big_d, bd, big_u, big_v, bu, bv, 0.5, 0.5, c, gd,
+                                      gu, gv)
             _unpad_u(bu, ub, sides)
             _unpad_v(bv, vb, sides)
             if has_d:
@@ -643,6 +722,7 @@ class _Geometry:
                     self.fluid[i, hi] if hi >= 0 else None, sides[2], sides[3], shape_y[i],
                     "bottom" if j == 0 else "top")
         self.ukind, self.vkind, self.uprof, self.vprof = ukind, vkind, uprof, vprof
+        self.ufree, self.vfree = ukind == FREE, vkind == FREE
         self.cell_index = np.full((nx, ny), -1, dtype=np.int64)
         self.cell_index[self.fluid] = np.arange(int(self.fluid.sum()))
         self.matrix, self.factors = self._factorise(name, nx, ny, px, py)
@@ -744,9 +824,10 @@ def _face_kind(name, i, n, lo, hi, fluid_lo, fluid_hi, side_lo, side_hi, prof, w
 @register
 class Incompressible2D(Stepper):
     """Incompressible Navier–Stokes on a staggered grid with walls, lids, inflow, outflow,
-    periodic sides and obstacles: semi-Lagrangian advection, explicit viscosity, an optional
-    smoke density with Boussinesq buoyancy and an exact pressure projection (factorised once);
-    parameters ``nu``, ``buoyancy`` (with density), ``inflow_speed`` (with an inflow side)."""
+    periodic sides and obstacles: semi-Lagrangian advection (or MacCormack), explicit
+    viscosity, an optional smoke density with Boussinesq buoyancy and an exact pressure
+    projection (factorised once); parameters ``nu``, ``buoyancy`` (with density),
+    ``inflow_speed`` (with an inflow side)."""
 
     name = "incompressible2d-sl"
     point_cost = 40.0
@@ -781,6 +862,7 @@ class Incompressible2D(Stepper):
         obstacle: np.ndarray | str | None = None,
         density: bool = False,
         buoyancy: float = 0.0,
+        advection: str = "semi-lagrangian",
     ):
         name = self.name
         nx = validate.integer(name, "nx", nx, ge=1, why="cells along x")
@@ -795,6 +877,7 @@ class Incompressible2D(Stepper):
         buoyancy = validate.number(name, "buoyancy", buoyancy)
         self.density = validate.flag(name, "density", density)
         self.profile = validate.choice(name, "profile", profile, PROFILES)
+        self.advection = validate.choice(name, "advection", advection, ADVECTIONS)
         self.boundaries = self._sides(boundaries)
         self.sides = np.array([SIDES.index(s) for s in self.boundaries], dtype=np.int64)
         self.lid = np.array([self.lid_speed if s == "lid" else 0.0 for s in self.boundaries])
@@ -945,18 +1028,32 @@ class Incompressible2D(Stepper):
         real = np.dtype(np.float64) if dtype.kind == "c" else dtype
         return (full, real.type(self.dt), real.type(self.dt / self.h),
                 real.type(self.dt / self.h**2), self.sides, self.lid.astype(real), g.ukind,
-                g.vkind, g.uprof.astype(real), g.vprof.astype(real), g.fluid, g.cell_index,
-                self._geo_u, self._geo_v, self._geo_d, g.factors)
+                g.vkind, g.uprof.astype(real), g.vprof.astype(real), g.fluid, g.ufree, g.vfree,
+                g.cell_index, self._geo_u, self._geo_v, self._geo_d, g.factors,
+                self.advection == "maccormack")
+
+    def _padded(self, dtype: np.dtype) -> tuple:
+        """Zero padded u, v and density fields."""
+        nx, ny = self.nx, self.ny
+        return (np.zeros((nx + 1, ny + 2), dtype), np.zeros((nx + 2, ny + 1), dtype),
+                np.zeros((nx + 2, ny + 2), dtype))
+
+    def _fields(self, dtype: np.dtype) -> tuple:
+        """Zero u, v and density fields, without the spare entries."""
+        nx, ny = self.nx, self.ny
+        return (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
+                np.zeros((nx, ny), dtype))
 
     def _work(self, dtype: np.dtype) -> tuple:
-        nx, ny, n = self.nx, self.ny, int(self.geometry.fluid.sum())
+        """The forward step's fields: u, v, ρ; their padded step inputs; u, v padded after the
+        advection, the advected ρ; the pressure solve's right-hand side, solution and scratch;
+        the padded semi-Lagrangian results (MacCormack)."""
+        n = int(self.geometry.fluid.sum())
         solve = np.result_type(dtype, np.float64)
-        return (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
-                np.zeros((nx, ny), dtype), np.zeros((nx + 1, ny + 2), dtype),
-                np.zeros((nx + 2, ny + 1), dtype), np.zeros((nx + 2, ny + 2), dtype),
-                np.zeros((nx + 1, ny + 2), dtype), np.zeros((nx + 2, ny + 1), dtype),
-                np.zeros((nx, ny), dtype), np.zeros(n, solve), np.zeros(n, solve),
-                np.zeros(n, solve))
+        big_u1, big_v1, _ = self._padded(dtype)
+        return (*self._fields(dtype), *self._padded(dtype), big_u1, big_v1,
+                self._fields(dtype)[2], np.zeros(n, solve), np.zeros(n, solve),
+                np.zeros(n, solve), *self._padded(dtype))
 
     def _forward(self, states, n, ctrl, p):
         ins_forward(states, n, ctrl, *self._kernel_args(states.dtype, p),
@@ -964,11 +1061,9 @@ class Incompressible2D(Stepper):
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
         dtype = ubar.dtype
-        nx, ny, n = self.nx, self.ny, int(self.geometry.fluid.sum())
-        bwork = (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
-                 np.zeros((nx, ny), dtype), np.zeros((nx + 1, ny + 2), dtype),
-                 np.zeros((nx + 2, ny + 1), dtype), np.zeros((nx + 2, ny + 2), dtype),
-                 np.zeros(n, np.result_type(dtype, np.float64)))
+        n = int(self.geometry.fluid.sum())
+        bwork = (*self._fields(dtype), *self._padded(dtype),
+                 np.zeros(n, np.result_type(dtype, np.float64)), *self._padded(dtype))
         full = np.zeros(3)
         pfull, *args = self._kernel_args(dtype, p)
         ins_adjoint(states, ctrl, pfull, cot, cmap, ubar, cbar, full, want_p, *args,
@@ -979,3 +1074,4 @@ class Incompressible2D(Stepper):
                 pbar[1] += full[1]
             if self.has_inflow:
                 pbar[-1] += full[2]
+

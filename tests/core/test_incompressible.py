@@ -97,6 +97,33 @@ def test_the_adjoint_is_the_transposed_tangent(boundaries, density):
 
 
 @pytest.mark.parametrize("boundaries", SCENES)
+def test_the_maccormack_adjoint_is_the_transposed_tangent(boundaries):
+    for obstacle in (None, "box"):
+        s = scene(boundaries, density=True, obstacle=obstacle, advection="maccormack")
+        assert dot_product_error(s, steps=4) < 1e-12, obstacle
+        out = s.rollout(s.random_state(np.random.default_rng(6), 2), 3)
+        assert np.abs(s.divergence(out)).max() < 1e-11
+
+
+def test_maccormack_is_sharper_than_semi_lagrangian():
+    """A smoke step carried across a periodic box keeps more of its contrast (measured: 0.76
+    against 0.41); semi-Lagrangian keeps its mass exactly in a uniform flow, MacCormack's
+    clamp does not."""
+    peaks = {}
+    for advection in ("semi-lagrangian", "maccormack"):
+        s = Incompressible2D(nx=16, ny=8, dt=0.03, nu=0.0, density=True, advection=advection,
+                             boundaries="periodic periodic periodic periodic")
+        u = np.zeros(s.state_shape(1))
+        u[0, 0] = 1.0
+        u[0, 2, 4:8, :8] = 1.0
+        out = s.rollout(u, 40)[0, 2, :16, :8]
+        if advection == "semi-lagrangian":
+            assert abs(out.mean() - 0.25) < 1e-12
+        peaks[advection] = out.max() - out.min()
+    assert peaks["maccormack"] > peaks["semi-lagrangian"] + 0.3, peaks
+
+
+@pytest.mark.parametrize("boundaries", SCENES)
 def test_the_smallest_grid_runs_and_reverses(boundaries):
     s = scene(boundaries, nx=1, ny=1, density=True)
     assert dot_product_error(s) < 1e-12
@@ -228,6 +255,7 @@ def test_an_obstacle_beside_the_inflow_but_off_it_is_accepted():
     ({"boundaries": "wall wall wall"}, "must name four sides"),
     ({"boundaries": "wall wall wall roof"}, "each one of wall, slip, lid"),
     ({"obstacle": "sphere"}, "obstacle must be one of 'cylinder', 'box'"),
+    ({"advection": "upwind"}, "advection must be one of 'semi-lagrangian', 'maccormack'"),
     ({"obstacle": np.zeros((6, 8), dtype=bool)}, r"boolean mask of shape \(8, 6\)"),
     ({"nu": float("nan")}, "nu must be a finite number"),
     ({"inflow_speed": float("inf")}, "inflow_speed must be a finite number"),
