@@ -1,12 +1,13 @@
 """Speed of the staggered-grid incompressible Navier–Stokes solver: forward and gradient.
 
     python benchmarks/incompressible.py [--n 32 64] [--batch 1] [--steps 50] [--repeats 3]
-                                        [--checkpoint 8] [--json PATH]
+                                        [--checkpoint 8] [--cpu] [--json PATH]
 
 Scene: ``incompressible2d-sl``'s benchmark scene at size n, the wake of a cylinder in a channel
 of 2n × n cells (inflow left, outflow right, free-slip walls) with an advected smoke density and
 buoyancy, float64, one solver thread, started from the flow after 20 steps. Per row, median
-wall time over the repeats of
+wall time (``--cpu``: the thread's CPU time, which other processes on a shared machine inflate
+much less) over the repeats of
   forward_s               rollout(u0, steps)
   gradient_s              vjp(u0, steps, ū, wrt_params=True): the forward sweep and the
                           adjoint, every state kept
@@ -38,13 +39,13 @@ from adjointsim import get, parallel  # noqa: E402
 NAME = "incompressible2d-sl"
 
 
-def median_time(fn, repeats: int) -> float:
+def median_time(fn, repeats: int, clock) -> float:
     fn()  # compiled (or loaded from the cache) and warm before the clock starts
     times = []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t = clock()
         fn()
-        times.append(time.perf_counter() - t)
+        times.append(clock() - t)
     return float(np.median(times))
 
 
@@ -58,7 +59,7 @@ def peak_mib(fn) -> float:
         tracemalloc.stop()
 
 
-def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int) -> dict:
+def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, clock) -> dict:
     stepper = get(NAME).benchmark_scene(n)
     rng = np.random.default_rng(0)
     u0 = stepper.rollout(np.zeros(stepper.state_shape(batch)), 20)
@@ -70,9 +71,9 @@ def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int) -> dict:
 
     return {
         "solver": NAME, "nx": stepper.nx, "ny": stepper.ny, "batch": batch, "steps": steps,
-        "forward_s": median_time(lambda: stepper.rollout(u0, steps), repeats),
-        "gradient_s": median_time(lambda: gradient(steps, None), repeats),
-        "gradient_checkpoint_s": median_time(lambda: gradient(steps, checkpoint), repeats),
+        "forward_s": median_time(lambda: stepper.rollout(u0, steps), repeats, clock),
+        "gradient_s": median_time(lambda: gradient(steps, None), repeats, clock),
+        "gradient_checkpoint_s": median_time(lambda: gradient(steps, checkpoint), repeats, clock),
         "checkpoint": checkpoint,
         "peak_mib": peak_mib(lambda: gradient(steps, checkpoint)),
         "peak_mib_4x": peak_mib(lambda: gradient(4 * steps, checkpoint)),
@@ -89,6 +90,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--checkpoint", type=int, default=8)
+    parser.add_argument("--cpu", action="store_true", help="thread CPU time instead of wall time")
     parser.add_argument("--json", type=Path, help="write the rows here")
     args = parser.parse_args()
     if importlib.util.find_spec("phi") is None:
@@ -99,7 +101,8 @@ def main() -> None:
     rows = []
     with parallel.using_threads(1):
         for n in args.n:
-            r = row(n, args.batch, args.steps, args.repeats, args.checkpoint)
+            r = row(n, args.batch, args.steps, args.repeats, args.checkpoint,
+                    time.thread_time if args.cpu else time.perf_counter)
             rows.append(r)
             print(f"{r['solver']} {r['nx']}×{r['ny']} B={r['batch']} {r['steps']} steps: "
                   f"forward {r['forward_s']:.3f} s, gradient {r['gradient_s']:.3f} s "
