@@ -1,5 +1,5 @@
 """2D incompressible Navier–Stokes on a staggered (MAC) grid with walls, inflow, outflow and
-obstacles; semi-Lagrangian advection and an exact pressure projection.
+obstacles; semi-Lagrangian (or MacCormack) advection and an exact pressure projection.
 
 Continuous, on a box of nx × ny square cells of side h:
     u_t + (u·∇)u = ν Δu + b ρ e_y + f,   ∇·u = 0,   ρ_t + u·∇ρ = s,
@@ -17,11 +17,12 @@ Discrete (Chorin's splitting, one step from u_k to u_{k+1}; c = Δt/h):
     takes the value at x − Δt u(x), sampled bilinearly from the padded fields, where one
     ghost layer holds each side's tangential condition (−u inside a no-slip wall, +u at a
     free-slip wall or an outflow, 2U − u at a lid, the opposite side when periodic) and the
-    sample points are clamped into that layer (or wrapped, when periodic);
-    With ``advection="maccormack"`` (the book's ``advect.mac_cormack``) the result φ̂ is
+    sample points are clamped into that layer (or wrapped, when periodic). With
+    ``advection="maccormack"`` (the book's ``advect.mac_cormack``) the result φ̂ is
     corrected to φ̂ + ½ (φ − φ̂(x + Δt u(x))) and clamped to the four values of φ around the
     backtraced point;
- 2. explicit viscosity: u += ν c/h Δ_h u on the free faces (same ghost layer);
+ 2. explicit viscosity: u += ν Δt Δ_h u on the free faces (5-point Laplacian, same ghost
+    layer; an outflow face mirrors itself across its side);
  3. forces: u += Δt f, v += Δt (f_y + b ρ̄) (ρ̄ the advected density averaged onto the face),
     ρ += Δt s;
  4. projection: M φ = −(D u) on the fluid cells, u −= G φ on the free faces, where D is the
@@ -734,13 +735,14 @@ class _Geometry:
         dirichlet = np.zeros(n, dtype=bool)
         influx = np.zeros(n)
 
-        def link(kind, a, b, prof, sign):
-            # a face between cell a (below/left) and cell b (above/right), either may be -1
+        def link(kind, a, b, prof):
+            # a face between cell a (below/left) and cell b (above/right), either may be -1;
+            # a fixed face carries prof (per unit inflow speed) from a into b
             if kind != FREE:
                 if a >= 0:
-                    influx[a] -= sign * prof
+                    influx[a] -= prof
                 if b >= 0:
-                    influx[b] += sign * prof
+                    influx[b] += prof
                 return
             for q in (a, b):
                 if q >= 0:
@@ -756,13 +758,13 @@ class _Geometry:
             for j in range(ny):
                 if self.ukind[i, j] != COPY:
                     link(self.ukind[i, j], ci[lo, j] if lo >= 0 else -1,
-                         ci[hi, j] if hi >= 0 else -1, self.uprof[i, j], 1.0)
+                         ci[hi, j] if hi >= 0 else -1, self.uprof[i, j])
         for j in range(ny + 1):
             lo, hi = _face_cells(j, ny, py)
             for i in range(nx):
                 if self.vkind[i, j] != COPY:
                     link(self.vkind[i, j], ci[i, lo] if lo >= 0 else -1,
-                         ci[i, hi] if hi >= 0 else -1, self.vprof[i, j], 1.0)
+                         ci[i, hi] if hi >= 0 else -1, self.vprof[i, j])
         adjacency = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
         count, label = connected_components(adjacency, directed=False)
         for region in range(count):
@@ -774,7 +776,7 @@ class _Geometry:
                 raise UserError(
                     f"{name}: the inflow puts a net flux of {net:.6g} (per unit inflow_speed, "
                     "in cell widths) into a region of fluid with no outflow, which cannot stay "
-                    "incompressible; give that region an outflow side or balance the inflow")
+                    "incompressible; give that region an outflow side, or make the inflow a wall")
             diag[cells[0]] += 1.0
         matrix = (sp.csc_matrix((-np.ones(len(rows)), (rows, cols)), shape=(n, n))
                   + sp.diags(diag)).tocsc()
@@ -883,8 +885,8 @@ class Incompressible2D(Stepper):
         self.advection = validate.choice(name, "advection", advection, ADVECTIONS)
         self.boundaries = self._sides(boundaries)
         self.sides = np.array([SIDES.index(s) for s in self.boundaries], dtype=np.int64)
-        self.lid = np.array([self.lid_speed if s == "lid" else 0.0 for s in self.boundaries])
         # a lid moves along its side: bottom/top lids move in +x, left/right lids in +y
+        self.lid = np.array([self.lid_speed if s == "lid" else 0.0 for s in self.boundaries])
         if abs(self.lid_speed) * self.dt / self.h > MAX_COURANT and "lid" in self.boundaries:
             raise ValueError(
                 f"{name}: dt = {self.dt:g} is beyond the advective limit for the lid: "
