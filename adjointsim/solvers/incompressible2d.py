@@ -895,6 +895,7 @@ class Incompressible2D(Stepper):
         solid = self._obstacle(obstacle)
         self.solid = solid
         self.geometry = _Geometry(name, nx, ny, tuple(self.sides), solid, self.profile)
+        self._fluid_cells = int(self.geometry.fluid.sum())
         self.has_inflow = "inflow" in self.boundaries
         self._peak_profile = float(max(np.abs(self.geometry.uprof).max(),
                                        np.abs(self.geometry.vprof).max()))
@@ -1023,56 +1024,62 @@ class Incompressible2D(Stepper):
 
     # ---------------------------------------------------------------- kernels
     def _kernel_args(self, dtype: np.dtype, p: np.ndarray) -> tuple:
-        g = self.geometry
+        """The kernels' arguments after the state cotangents: the parameters (ν, b, inflow
+        speed; zero where the scene has none), then the scene's constants in the state's real
+        dtype (cached per dtype: a controller steps the scene once per call)."""
         full = np.zeros(3, dtype=p.dtype)
         full[0] = p[0]
         if self.density:
             full[1] = p[1]
         if self.has_inflow:
             full[2] = p[-1]
-        real = np.dtype(np.float64) if dtype.kind == "c" else dtype
-        return (full, real.type(self.dt), real.type(self.dt / self.h),
-                real.type(self.dt / self.h**2), self.sides, self.lid.astype(real), g.ukind,
-                g.vkind, g.uprof.astype(real), g.vprof.astype(real), g.fluid, g.ufree, g.vfree,
-                g.cell_index, self._geo_u, self._geo_v, self._geo_d, g.factors,
-                self.advection == "maccormack")
+        cache = self.__dict__.setdefault("_constants", {})
+        constants = cache.get(dtype)
+        if constants is None:
+            g = self.geometry
+            real = np.dtype(np.float64) if dtype.kind == "c" else dtype
+            constants = cache[dtype] = (
+                real.type(self.dt), real.type(self.dt / self.h), real.type(self.dt / self.h**2),
+                self.sides, self.lid.astype(real), g.ukind, g.vkind, g.uprof.astype(real),
+                g.vprof.astype(real), g.fluid, g.ufree, g.vfree, g.cell_index, self._geo_u,
+                self._geo_v, self._geo_d, g.factors, self.advection == "maccormack")
+        return (full, *constants)
 
-    def _padded(self, dtype: np.dtype) -> tuple:
-        """Zero padded u, v and density fields."""
-        nx, ny = self.nx, self.ny
-        return (np.zeros((nx + 1, ny + 2), dtype), np.zeros((nx + 2, ny + 1), dtype),
-                np.zeros((nx + 2, ny + 2), dtype))
-
-    def _fields(self, dtype: np.dtype) -> tuple:
-        """Zero u, v and density fields, without the spare entries."""
-        nx, ny = self.nx, self.ny
-        return (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
-                np.zeros((nx, ny), dtype))
-
-    def _work(self, dtype: np.dtype) -> tuple:
+    def _work(self, dtype: np.dtype, adjoint: bool = False) -> tuple:
         """The forward step's fields: u, v, ρ; their padded step inputs; u, v padded after the
         advection, the advected ρ; the pressure solve's right-hand side, solution and scratch;
-        the padded semi-Lagrangian results (MacCormack)."""
-        n = int(self.geometry.fluid.sum())
+        the padded semi-Lagrangian results (MacCormack). With ``adjoint``, also the reverse
+        step's cotangents: of u, v, ρ, of the padded u, v, ρ, of the pressure and of the padded
+        semi-Lagrangian results. All zero."""
+        nx, ny = self.nx, self.ny
         solve = np.result_type(dtype, np.float64)
-        big_u1, big_v1, _ = self._padded(dtype)
-        return (*self._fields(dtype), *self._padded(dtype), big_u1, big_v1,
-                self._fields(dtype)[2], np.zeros(n, solve), np.zeros(n, solve),
-                np.zeros(n, solve), *self._padded(dtype))
+
+        def fields():
+            return (np.zeros((nx + 1, ny), dtype), np.zeros((nx, ny + 1), dtype),
+                    np.zeros((nx, ny), dtype))
+
+        def padded():
+            return (np.zeros((nx + 1, ny + 2), dtype), np.zeros((nx + 2, ny + 1), dtype),
+                    np.zeros((nx + 2, ny + 2), dtype))
+
+        def pressure():
+            return np.zeros(self._fluid_cells, solve)
+
+        work = (*fields(), *padded(), *padded()[:2], np.zeros((nx, ny), dtype), pressure(),
+                pressure(), pressure(), *padded())
+        if not adjoint:
+            return work
+        return work, (*fields(), *padded(), pressure(), *padded())
 
     def _forward(self, states, n, ctrl, p):
         ins_forward(states, n, ctrl, *self._kernel_args(states.dtype, p),
                     self._work(states.dtype))
 
     def _adjoint(self, states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p):
-        dtype = ubar.dtype
-        n = int(self.geometry.fluid.sum())
-        bwork = (*self._fields(dtype), *self._padded(dtype),
-                 np.zeros(n, np.result_type(dtype, np.float64)), *self._padded(dtype))
         full = np.zeros(3)
-        pfull, *args = self._kernel_args(dtype, p)
+        pfull, *args = self._kernel_args(ubar.dtype, p)
         ins_adjoint(states, ctrl, pfull, cot, cmap, ubar, cbar, full, want_p, *args,
-                    self._work(dtype), bwork)
+                    *self._work(ubar.dtype, adjoint=True))
         if want_p:
             pbar[0] += full[0]
             if self.density:
