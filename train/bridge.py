@@ -230,6 +230,7 @@ class _Operator:
     ) -> None:
         if backward is None:  # a reverse sweep: differentiating it again is refused
             setup_context, backward = _name_solvers, _refuse_backward
+        self.kernel = kernel
         self.op = torch.library.custom_op(f"adjointsim::{name}", kernel, mutates_args=())
         self.op.register_fake(fake)
         self.op.register_vmap(vmap)
@@ -245,12 +246,21 @@ class _Operator:
             },
         )
 
+        # Function.apply binds the arguments to the forward's signature on every call (to fill
+        # in defaults, which the kernels do not have), costing more than the rest of the call:
+        # outside the torch.func transforms, the node is made without it.
+        self.apply = super(torch.autograd.Function, self.function).apply
+
     def __call__(self, *args: object) -> tuple[torch.Tensor, ...]:
         if torch.compiler.is_compiling() or not all(
             type(a) in _EAGER for a in args if isinstance(a, torch.Tensor)
         ):
             return self.op(*args)
-        return self.function.apply(*args)
+        if torch._C._are_functorch_transforms_active():
+            return self.function.apply(*args)
+        if not torch.is_grad_enabled():  # no node to record: the kernel alone
+            return self.kernel(*args)
+        return self.apply(*args)
 
 
 #: tensor types that take the eager Function (others are a tracer's: fake, functional, proxy)
