@@ -238,6 +238,20 @@ def test_scenes_that_cannot_be_projected_are_named_in_one_line(kw, match):
     assert "\n" not in str(err.value)
 
 
+def test_a_pocket_of_fluid_walled_in_by_an_obstacle_is_projected_on_its_own():
+    """A pocket of 2 × 2 cells has no outflow: its pressure is pinned at one cell, and its flow
+    stays divergence-free beside the channel's."""
+    ring = np.zeros((8, 6), dtype=bool)
+    ring[3:7, 1:5] = True
+    ring[4:6, 2:4] = False
+    s = scene("inflow outflow wall wall", obstacle=ring, density=True)
+    assert s.geometry.ufree[5, 2:4].all() and s.geometry.vfree[4:6, 3].all()
+    assert dot_product_error(s) < 1e-12
+    out = s.rollout(s.random_state(np.random.default_rng(7), 1), 3)
+    assert np.abs(s.divergence(out)).max() < 1e-11
+    assert np.abs(out[0, 0, 5, 2:4]).max() > 0  # the pocket's fluid moves
+
+
 def test_an_obstacle_beside_the_inflow_but_off_it_is_accepted():
     s = scene("inflow outflow wall wall", obstacle=cylinder(8, 6, (2, 3), 1.2))
     assert s.solid[1].any() and not s.solid[0].any()
