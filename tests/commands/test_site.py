@@ -69,8 +69,9 @@ def test_the_site_builds_strictly_and_names_every_solver_and_command(tmp_path):
 
     api = (tmp_path / "api" / "index.html").read_text(encoding="utf-8")
     for anchor in ("adjointsim.stepper.Stepper.vjp", "adjointsim.registry.get",
-                   "adjointsim.check.check_stepper", "adjointsim.fit.fit", "adjointsim.run",
-                   "adjointsim.runner.run", "adjointsim.train.bridge.rollout",
+                   "adjointsim.check.check_stepper", "adjointsim.fit.fit",
+                   "adjointsim.engine.run", "adjointsim.run.Config", "adjointsim.runner.run",
+                   "adjointsim.train.bridge.rollout",
                    "adjointsim.train.unroll.GradientFlow",
                    "adjointsim.train.hig.HalfInverseGradients",
                    "adjointsim.train.weighting.Weighting", "adjointsim.nets.ResNet"):
