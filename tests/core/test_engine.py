@@ -34,6 +34,7 @@ class CountConfig(Config):
     ACCEPTED: ClassVar = {"epochs": Interval(1), "rate": Interval(0), "threads": Interval(1)}
 
 
+# --8<-- [start:problem]
 class Count(engine.Problem):
     """x ← x + rate · (1 − x), one epoch an update; stops on KeyboardInterrupt when asked."""
 
@@ -84,6 +85,7 @@ class Count(engine.Problem):
 
     def load_histories(self, histories):
         self.rows = list(histories["history.csv"])
+# --8<-- [end:problem]
 
 
 def count(out, stop_at=None, **cfg):
