@@ -14,11 +14,12 @@ solvers:
   (mode C's graph: the network sees the state the solver returned), batch 8.
 
 For each task and backend, a row: ``eager_s`` and ``compiled_s`` (median seconds per update,
-process CPU time, after warm-up), ``compile_s`` (wall seconds of the first compiled update, less
-one eager update: tracing and code generation), ``graph_breaks`` (``torch._dynamo.explain``),
-``max_abs_diff`` (the largest difference of the loss and the gradients, compiled against
-eager, on the same parameters), ``speedup`` (eager / compiled) and ``break_even_updates``
-(updates after which the compile time is paid back; null when compiling does not pay).
+process CPU time, after warm-up, the two taken in turn), ``compile_s`` (wall seconds of the
+first compiled update, less one eager update: tracing and code generation), ``graph_breaks``
+(``torch._dynamo.explain``), ``max_abs_diff`` (the largest difference of the loss and the
+gradients, compiled against eager, on the same parameters), ``speedup`` (eager / compiled)
+and ``break_even_updates`` (updates after which the compile time is paid back; null when
+compiling does not pay).
 ``aot_eager`` runs torch's own kernels on the traced graph (bit-for-bit the eager numbers);
 ``inductor`` generates C++ for the network's layers (needs a C++ compiler) and may reorder
 their arithmetic (round-off differences).
@@ -99,17 +100,20 @@ def _gradients(task: Task, loss_fn: Callable) -> list[torch.Tensor]:
     return [loss.detach(), *torch.autograd.grad(loss, params)]
 
 
-def _update_seconds(task: Task, loss_fn: Callable, updates: int) -> float:
-    """Median CPU seconds of one update (loss, backward, Adam step) over ``updates``."""
+def _update_seconds(task: Task, loss_fns: list[Callable], updates: int) -> list[float]:
+    """Median CPU seconds of one update (loss, backward, Adam step) for each loss function,
+    over ``updates`` rounds that run each once in turn (so that a change of load on a shared
+    machine hits them alike)."""
     opt = torch.optim.Adam(task.net.parameters(), lr=1e-6)
-    times = []
+    times: list[list[float]] = [[] for _ in loss_fns]
     for _ in range(updates):
-        t0 = time.process_time()
-        opt.zero_grad(set_to_none=True)
-        loss_fn(task.data).backward()
-        opt.step()
-        times.append(time.process_time() - t0)
-    return float(np.median(times))
+        for fn, kept in zip(loss_fns, times, strict=True):
+            t0 = time.process_time()
+            opt.zero_grad(set_to_none=True)
+            fn(task.data).backward()
+            opt.step()
+            kept.append(time.process_time() - t0)
+    return [float(np.median(t)) for t in times]
 
 
 def measure(make: Callable[[], Task], backend: str, updates: int) -> dict:
@@ -122,10 +126,8 @@ def measure(make: Callable[[], Task], backend: str, updates: int) -> dict:
     got = _gradients(task, compiled)  # traces, compiles and runs once
     first_s = time.perf_counter() - start
     diff = max(float((a - b).abs().max()) for a, b in zip(got, want, strict=True))
-    _update_seconds(task, task.loss, 2)  # warm-up
-    _update_seconds(task, compiled, 2)
-    eager = _update_seconds(task, task.loss, updates)
-    fast = _update_seconds(task, compiled, updates)
+    _update_seconds(task, [task.loss, compiled], 2)  # warm-up
+    eager, fast = _update_seconds(task, [task.loss, compiled], updates)
     compile_s = max(first_s - eager, 0.0)
     saved = eager - fast
     return {
