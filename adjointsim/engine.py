@@ -183,6 +183,12 @@ class Single:
 
 
 # ----------------------------------------------------------------------------- the claim
+def started(out: str | Path) -> bool:
+    """Whether ``out`` holds a run (its config, checkpoint or result): a study's cell passes
+    this as ``resume``, to continue or return its run where one is and start one where not."""
+    return any((Path(out) / name).exists() for name in (CONFIG, CHECKPOINT, RESULT))
+
+
 @dataclass
 class Claim:
     """What a run directory holds for the run about to start: nothing to keep (``fresh``),
@@ -221,7 +227,7 @@ class RunDir:
 
     def holds(self) -> bool:
         """Whether the directory holds a run (its config, checkpoint or result)."""
-        return any((self.out / name).exists() for name in (CONFIG, CHECKPOINT, RESULT))
+        return started(self.out)
 
     def claim(self, resume: bool, overwrite: bool) -> Claim:
         """The claim rule: see the module's doc. Nothing is written here."""
@@ -367,7 +373,7 @@ def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: 
     todo = [k for k, c in enumerate(claims) if c.result is None]
     for k in todo:
         members[k].build()
-    with _errors([dirs[k] for k in todo]):  # an --out that cannot be written is named
+    with run_errors([dirs[k].out for k in todo]):  # an --out that cannot be written is named
         for k in todo:
             dirs[k].start(claims[k])
             if claims[k].checkpoint is not None:
@@ -442,23 +448,25 @@ def _round(x: float) -> float:
 
 
 @contextmanager
-def _errors(dirs: list[RunDir]) -> Iterator[None]:
-    """Ctrl-C says whether ``--resume`` applies (every member saved a checkpoint) or the
+def run_errors(outs: Sequence[Path]) -> Iterator[None]:
+    """How the Ctrl-C and file errors of the runs in ``outs`` (one run, or an ensemble's
+    members) reach the user: whether ``--resume`` applies (a checkpoint is saved) or the
     command is simply run again; a file that cannot be written names ``--out``."""
     try:
         yield
+    except Interrupted:  # it says already what to do
+        raise
     except KeyboardInterrupt:
-        saved = [d.out for d in dirs if (d.out / CHECKPOINT).exists()]
+        saved = [o for o in outs if (o / CHECKPOINT).exists()]
         if not saved:
             raise Interrupted("stopped before the first checkpoint: nothing to resume, run the "
                               "command again") from None
-        where = saved[0] if len(dirs) == 1 else saved[0].parent
+        where = saved[0] if len(outs) == 1 else saved[0].parent
         raise Interrupted(f"the checkpoint is saved; continue with the same command and "
                           f"--resume (--out {where})") from None
     except (RunExists, FileNotFoundError):
         raise
     except OSError as e:
-        outs = [d.out for d in dirs]
         if e.filename is None or not any(_inside(Path(e.filename), o) for o in outs):
             raise
         raise OSError(f"cannot write the run to --out {outs[0]} ({e.strerror or e}); choose a "

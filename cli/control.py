@@ -70,7 +70,6 @@ def _level(args: argparse.Namespace, task: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint
     from adjointsim.train.control import ControlConfig, train_controller
 
     values = overrides(args, ControlConfig)
@@ -84,8 +83,6 @@ def run(args: argparse.Namespace) -> int:
     out = Path(cfg.out)
     if args.seeds:
         return _ensemble(args, cfg, out)
-    if args.resume:
-        require_checkpoint(out)
     task = cfg.make_task()
     n = sum(p.numel() for p in task.net().parameters())
     print(f"{cfg.task} ({task.key} {cfg.level}), mode {cfg.mode}, clip {cfg.clip}: "

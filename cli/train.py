@@ -39,7 +39,6 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.run import require_checkpoint
     from adjointsim.train.trainer import TrainConfig, build_model, describe, train
 
     values = overrides(args, TrainConfig)
@@ -70,8 +69,6 @@ def run(args: argparse.Namespace) -> int:
         for c, r in zip(cfgs, results):
             print(f"seed {c.seed}: final loss {_loss(r)}; run in {c.out}")
         return 0
-    if args.resume:
-        require_checkpoint(out)
     print(f"{cfg.setup}/{cfg.mode}: {describe(build_model(cfg))}", flush=True)
     train(cfg, resume=args.resume, progress=args.progress, overwrite=args.overwrite)
     write_result(args, _result(cfg))

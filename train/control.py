@@ -416,15 +416,13 @@ def train_controller(cfg: ControlConfig, resume: bool = False, progress: bool = 
     """Train a controller as configured; returns the result (also in ``cfg.out``).
 
     A ``cfg.out`` holding a run is refused unless ``resume`` (continue it, to more epochs too)
-    or ``overwrite`` (discard it and start again) is given; ``resume`` starts a run where
-    ``cfg.out`` holds none (a study's cells resume this way; the command line refuses
-    ``--resume`` there). Ctrl-C saves a checkpoint between two updates and re-raises.
+    or ``overwrite`` (discard it and start again) is given; ``resume`` where ``cfg.out`` holds
+    no run is refused too (a study's cell passes ``resume=engine.started(cfg.out)``). Ctrl-C
+    saves a checkpoint between two updates and re-raises.
     """
     cfg.validate()
     use_threads(cfg.threads)
-    problem = Controller(cfg)
-    return engine.run(problem, resume=resume and engine.RunDir(problem).holds(),
-                      overwrite=overwrite, progress=progress)
+    return engine.run(Controller(cfg), resume=resume, overwrite=overwrite, progress=progress)
 
 
 # ----------------------------------------------------------------------------- plots

@@ -164,6 +164,19 @@ def test_resume_without_a_run_says_so(tmp_path):
         engine.run(count(tmp_path / "none"), resume=True, progress=False)
 
 
+def test_a_study_cell_resumes_where_a_run_was_started(tmp_path):
+    """``resume=started(out)`` starts a cell's run where none is and returns or continues it
+    where one is."""
+    out = tmp_path / "cell"
+    assert not engine.started(out)
+    first = engine.run(count(out), resume=engine.started(out), progress=False)
+    assert engine.started(out)
+    assert engine.run(count(out), resume=engine.started(out), progress=False) == first
+    (out / "result.json").unlink()
+    (out / "checkpoint.pt").unlink()
+    assert engine.started(out)  # its config.json alone: stopped before its first checkpoint
+
+
 def test_an_out_that_is_a_file_is_named(tmp_path):
     (tmp_path / "afile").write_text("")
     with pytest.raises(OSError, match="cannot write the run to --out .*afile"):

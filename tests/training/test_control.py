@@ -358,7 +358,7 @@ def test_resume_needs_a_checkpoint_and_overwrite_starts_again(tmp_path, capsys):
     out = tmp_path / "run"
     base = ["control", "cartpole", "--epochs", "1", *SMALL]
     err = _one_line(capsys, *base, "--out", out, "--resume")
-    assert "holds no checkpoint to continue from" in err and not out.exists()
+    assert "holds no run to continue" in err and not out.exists()
     assert cli([str(a) for a in [*base, "--out", out]]) == 0
     # --overwrite discards the finished run and trains the new configuration from scratch,
     # as in a new directory

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adjointsim.engine import CHECKPOINT, CONFIG, RESULT
+from adjointsim.engine import started
 from adjointsim.files import log_axis, pyplot, save_figure, write_text
 from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
@@ -96,7 +96,7 @@ def _config(cell: dict, run_dir: Path) -> TrainConfig:
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Train (resuming from the cell's checkpoint if there is one) and evaluate one model."""
     cfg = _config(cell, run_dir)
-    return _row(cell, cfg, train(cfg, resume=_started(run_dir), progress=False), run_dir)
+    return _row(cell, cfg, train(cfg, resume=started(run_dir), progress=False), run_dir)
 
 
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
@@ -104,13 +104,8 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     evaluate each; returns their rows."""
     cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
     # resuming an ensemble starts its members without a run beside the others
-    models = train_ensemble(cfgs, resume=any(map(_started, run_dirs)), progress=False)
+    models = train_ensemble(cfgs, resume=any(map(started, run_dirs)), progress=False)
     return [_row(*args) for args in zip(cells, cfgs, models, run_dirs)]
-
-
-def _started(run_dir: Path) -> bool:
-    """Whether a cell's run directory holds its run (to resume, or to return as it is)."""
-    return any((run_dir / name).exists() for name in (CONFIG, CHECKPOINT, RESULT))
 
 
 def _row(cell: dict, cfg: TrainConfig, model, run_dir: Path) -> dict:

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import plot_history, read_history
 from adjointsim.runner import Study, register_study
@@ -110,7 +111,8 @@ def _config(cell: dict, run_dir: Path) -> ControlConfig:
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Train (or resume, or reuse) the cell's controller in ``run_dir``; returns its row."""
     cfg = _config(cell, run_dir)
-    return _row(cell, cfg, train_controller(cfg, resume=True, progress=False), run_dir)
+    result = train_controller(cfg, resume=engine.started(run_dir), progress=False)
+    return _row(cell, cfg, result, run_dir)
 
 
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:

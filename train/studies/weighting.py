@@ -39,6 +39,7 @@ import time
 from pathlib import Path
 from statistics import median
 
+from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.runner import Study, register_study
 
@@ -132,7 +133,7 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot", "problem")}
     if cell["problem"] == "guidance":
         cfg = ControlConfig(task="guidance", mode="R", out=str(run_dir), **keys)
-        result = train_controller(cfg, resume=True, progress=False)
+        result = train_controller(cfg, resume=engine.started(run_dir), progress=False)
         track = result["test_terms"]["tracking"]
         return {"rel_l2": track if math.isfinite(track) else None,
                 "metric": METRICS["guidance"], "diverged": not math.isfinite(track),
