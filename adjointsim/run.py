@@ -6,9 +6,8 @@ once finished, ``result.json``. This module holds what every command does the sa
 - the config: a dataclass with :class:`Config` mixed in, loaded from TOML and flags, every key
   checked for its type and against the command's table of accepted values (:class:`Interval`,
   a tuple of choices, or a rule in words), errors naming the key;
-- the claim rule (:func:`finished_result`, :func:`claim_new`): a directory holding somebody
-  else's files, a finished run or an unfinished one is never overwritten silently;
-- :func:`require_checkpoint` for ``--resume``, :func:`run_errors` for what Ctrl-C tells the user;
+- what the run engine (``adjointsim.engine``) compares and reads: :func:`differing`,
+  :func:`read_result`, :func:`holds_run`, :func:`discard`;
 - the history: :func:`write_history`, :func:`read_history` and one plot, :func:`plot_history`.
 
 The checkpoint format (a SHA-256 digest over the contents) is the torch layer's
@@ -27,14 +26,13 @@ import os
 import tomllib
 import types
 import typing
-from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from .errors import ConfigTypeError, Interrupted, RunExists, UserError
-from .files import json_text, log_axis, pyplot, save_figure, write_text
+from .errors import ConfigTypeError, RunExists, UserError
+from .files import log_axis, pyplot, save_figure, write_text
 
 
 # ----------------------------------------------------------------------------- the config
@@ -269,107 +267,6 @@ def read_result(path: Path) -> dict:
         raise RunExists(f"{path} is damaged (not a JSON object: {result!s:.80}); delete it to "
                         "finish the run again from its checkpoint")
     return result
-
-
-def refuse_foreign(out: Path, config: dict, resumable: Iterable[str] = ()) -> None:
-    """``RunExists`` when ``out`` holds somebody else's files: a ``config.json`` that is not
-    ``config`` up to its ``resumable`` keys (another run, or not a run), or files but no
-    ``config.json`` at all."""
-    path = out / "config.json"
-    if not path.exists():
-        if out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir()):
-            raise RunExists(f"{out} holds other files and no run's config.json; choose a new "
-                            "or empty --out")
-        return
-    try:
-        theirs = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError):
-        theirs = None
-    ours = json.loads(json_text(config))
-    if isinstance(theirs, dict) and not differing(ours, theirs, resumable):
-        return
-    if isinstance(theirs, dict) and _keys(theirs, resumable) == _keys(ours, resumable):
-        state = "a finished run" if (out / "result.json").exists() else "a run"
-        raise RunExists(f"{out} holds {state} of another configuration (differs in "
-                        f"{', '.join(differing(ours, theirs, resumable))}); choose another "
-                        "--out, or start it again with --overwrite")
-    what = (f"differs in {', '.join(differing(ours, theirs))}" if isinstance(theirs, dict)
-            else "is not a run's")
-    raise RunExists(f"{out} holds another run or other files (its config.json {what}); "
-                    "choose another --out")
-
-
-@contextmanager
-def run_errors(out: Path) -> Iterator[None]:
-    """How a run's Ctrl-C and file errors reach its command's user: whether ``--resume``
-    applies (a checkpoint exists) or the command is simply run again, and that ``--out``
-    cannot be written, naming it."""
-    try:
-        yield
-    except Interrupted:  # it says already what to do (an ensemble: where its members are)
-        raise
-    except KeyboardInterrupt:
-        if not (out / "checkpoint.pt").exists():
-            raise Interrupted("stopped before the first checkpoint: nothing to resume, run "
-                              "the command again") from None
-        raise Interrupted(f"the checkpoint is saved; continue with --resume --out {out}") \
-            from None
-    except (RunExists, FileNotFoundError):  # their messages name the file already
-        raise
-    except OSError as e:
-        if e.filename is not None and not _inside(Path(e.filename), out):
-            raise  # another file (an input): its own message names it
-        raise OSError(f"cannot write the run to --out {out} ({e.strerror or e}); choose a "
-                      "writable directory") from None
-
-
-def _inside(path: Path, folder: Path) -> bool:
-    try:
-        path.resolve().relative_to(folder.resolve())
-    except ValueError:
-        return False
-    return True
-
-
-def finished_result(out: Path, resume: bool, config: dict | None = None,
-                    keys: Iterable[str] = (), resumable: Iterable[str] = ()) -> dict | None:
-    """A run directory's claim rule: the finished run's ``result.json`` when resuming it, None
-    when there is nothing to keep or an unfinished run to resume; otherwise ``RunExists``.
-    With ``config``, a finished run whose result disagrees with it is ``RunExists`` too, and so
-    is a directory without a run whose ``config.json`` is not ``config`` (somebody else's).
-    A result without ``config``'s keys and ``keys`` is damaged; ``resumable`` keys may differ
-    or be missing."""
-    result_path = out / "result.json"
-    if config is not None:
-        refuse_foreign(out, config, resumable)
-    if result_path.exists():
-        if resume:
-            result = read_result(result_path)
-            ours = json.loads(json_text(config or {}))
-            missing = [k for k in (*ours, *keys) if k not in result and k not in resumable]
-            if missing:
-                raise RunExists(f"{result_path} is damaged (it lacks {', '.join(missing)}); "
-                                "delete it to finish the run again from its checkpoint")
-            differ = sorted(k for k, v in ours.items()
-                            if result.get(k) != v and k not in resumable)
-            if differ:
-                raise RunExists(f"{out} holds a finished run of another configuration "
-                                f"(differs in {', '.join(differ)}); choose another --out")
-            return result
-        raise RunExists(f"{out} holds a finished run; choose another --out, or start it again "
-                        "with --overwrite")
-    if (out / "checkpoint.pt").exists() and not resume:
-        raise RunExists(f"{out} holds an unfinished run; continue it with --resume, or start it "
-                        "again with --overwrite")
-    return None
-
-
-def require_checkpoint(out: Path) -> None:
-    """``--resume`` needs a run to continue: a directory without a checkpoint (or a finished
-    result) is an error that says so, not a silent fresh start."""
-    if not (out / "checkpoint.pt").exists() and not (out / "result.json").exists():
-        raise UserError(f"--resume: {out} holds no checkpoint to continue from; run the "
-                        "command without --resume to start the run")
 
 
 def holds_run(out: Path, config: dict, resumable: Iterable[str] = ()) -> bool:

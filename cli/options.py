@@ -71,8 +71,8 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     """``--seeds``: ``cfg`` once per seed, each run in ``out/seedN``, trained as one ensemble
     (announced as ``what``) by ``train_members(cfgs, resume=, progress=, overwrite=)``;
     returns the members' configs and what each run returns."""
+    from adjointsim.engine import run_errors
     from adjointsim.errors import UserError
-    from adjointsim.run import run_errors
     if args.seed is not None:
         raise UserError("--seed and --seeds: pass one")
     if len(set(args.seeds)) < len(args.seeds):
@@ -85,7 +85,7 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
         raise UserError(f"--resume: no seed in {out} holds a checkpoint to continue from; run "
                         "the command without --resume to start them")
     print(f"{what}: an ensemble of {len(cfgs)} seeds", flush=True)
-    with run_errors(out):
+    with run_errors([Path(c.out) for c in cfgs]):
         results = train_members(cfgs, resume=args.resume, progress=args.progress,
                                  overwrite=args.overwrite)
     return cfgs, results

@@ -11,14 +11,13 @@ file in this package (plus its test).
 
 from __future__ import annotations
 
-import inspect
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from torch import nn
 
-import adjointsim
+from adjointsim import scenes
 from adjointsim.nets.mlp import MLP
 from adjointsim.registry import Registry
 
@@ -56,13 +55,7 @@ class Task:
                                  f"--{self.key.replace('_', '-')} instead")
         #: the scene this task's solver is built from (the defaults and ``scene``)
         self.scene = {**self.SCENE, **(scene or {})}
-        cls = adjointsim.get(self.SOLVER)
-        takes = [n for n in inspect.signature(cls.__init__).parameters if n != "self"]
-        unknown = [k for k in self.scene if k not in takes or k in fixed]
-        if unknown:
-            raise ValueError(f"scene key {unknown[0]!r}: {self.SOLVER} takes "
-                             f"{', '.join(k for k in takes if k not in fixed)}")
-        self.solver = cls(**self.scene, **fixed)
+        self.solver = scenes.build(self.SOLVER, self.scene, fixed)
 
     @classmethod
     def level_of(cls, value: Any) -> Any:
