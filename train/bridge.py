@@ -21,9 +21,11 @@ element, fall back to one call per element: the solver takes one parameter vecto
 **Steppers as operator arguments.** An operator takes tensors, numbers and lists of them, not a
 Python object such as a stepper. Each stepper the bridge sees is entered in a table of live
 steppers (weakly: the table never keeps one alive) under an integer, its ``id``; the operators
-take that integer and look the stepper up when they run. Under ``torch.compile`` the integer is
-a constant of the graph (taken at trace time with ``torch.compiler.assume_constant_result``,
-guarded on the stepper object), so another stepper compiles another graph.
+take that integer and look the stepper up when they run. An autograd node holds its steppers
+until its backward pass, so a stepper dropped between the forward and the backward pass is
+still there. Under ``torch.compile`` the integer is a constant of the graph (taken at trace
+time with ``torch.compiler.assume_constant_result``, guarded on the stepper object), so another
+stepper compiles another graph; the compiled function's steppers are those it refers to.
 
 **Eager cost.** A closed loop calls the solver once per step, so the per-call cost matters.
 Outside ``torch.compile`` the functions apply a ``torch.autograd.Function`` that runs the same
@@ -314,6 +316,7 @@ def _rollout_fake(key, n, keep_all, checkpoint, step, store, u0, controls, param
 def _rollout_setup(ctx, inputs, output) -> None:
     key, n, keep_all, checkpoint, step, _, _, controls, params = inputs
     ctx.config = key, n, keep_all, checkpoint, step
+    ctx.stepper = _LIVE[key]  # the table holds it weakly: alive until the backward pass
     ctx.set_materialize_grads(False)  # the tape gets no cotangent: none is made for it
     ctx.save_for_backward(output[1], controls, params)
 
@@ -496,6 +499,7 @@ def _grouped_fake(keys, rows, n, store, u0):
 
 def _grouped_setup(ctx, inputs, output) -> None:
     ctx.config = inputs[:3]
+    ctx.steppers = [_LIVE[k] for k in inputs[0]]  # alive until the backward pass
     ctx.set_materialize_grads(False)
     ctx.save_for_backward(output[1])
 

@@ -200,6 +200,21 @@ def test_tensors_of_any_strides_give_the_contiguous_numbers_and_gradients():
     assert one.numpy().tobytes() == ref.numpy().tobytes()
 
 
+def test_a_stepper_dropped_after_the_forward_pass_still_runs_the_backward_pass():
+    """The operators know a stepper by a key into a weak table; the graph keeps it alive."""
+    import gc
+
+    u0, _, _ = _inputs(adjointsim.get("burgers1d-rusanov").default(), 2, batch=3)
+    out = bridge.rollout(adjointsim.get("burgers1d-rusanov").default(), u0, 2)
+    grouped = bridge.rollout_grouped(
+        [(adjointsim.get("burgers1d-rusanov").default(), slice(None))], u0, 2)
+    gc.collect()
+    (g,) = torch.autograd.grad(out.square().sum() + grouped.square().sum(), u0)
+    stepper = adjointsim.get("burgers1d-rusanov").default()
+    (want,) = torch.autograd.grad(2 * bridge.rollout(stepper, u0, 2).square().sum(), u0)
+    torch.testing.assert_close(g, want, rtol=1e-14, atol=0)
+
+
 # ------------------------------------------------------------------ edges
 @pytest.mark.parametrize("name", NAMES)
 def test_zero_steps_and_empty_batches_through_the_bridge(name):
