@@ -71,7 +71,7 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     """``--seeds``: ``cfg`` once per seed, each run in ``out/seedN``, trained as one ensemble
     (announced as ``what``) by ``train_members(cfgs, resume=, progress=, overwrite=)``;
     returns the members' configs and what each run returns."""
-    from adjointsim.engine import run_errors
+    from adjointsim.engine import run_errors, started
     from adjointsim.errors import UserError
     if args.seed is not None:
         raise UserError("--seed and --seeds: pass one")
@@ -80,10 +80,9 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]
     # --resume continues the seeds that hold a run; one without (added, or its directory
     # deleted) starts fresh beside them
-    if args.resume and not any((Path(c.out) / name).exists() for c in cfgs
-                               for name in ("checkpoint.pt", "result.json")):
-        raise UserError(f"--resume: no seed in {out} holds a checkpoint to continue from; run "
-                        "the command without --resume to start them")
+    if args.resume and not any(started(c.out) for c in cfgs):
+        raise UserError(f"--resume: no seed in {out} holds a run to continue; run the command "
+                        "without --resume to start them")
     print(f"{what}: an ensemble of {len(cfgs)} seeds", flush=True)
     with run_errors([Path(c.out) for c in cfgs]):
         results = train_members(cfgs, resume=args.resume, progress=args.progress,
