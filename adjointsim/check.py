@@ -137,7 +137,10 @@ def check_stepper(
         inputs.append(("controls", ctrl, direction))
     for i, name in enumerate(stepper.param_names):
         direction = np.zeros_like(p)
-        direction[i] = abs(p[i]) if p[i] != 0 else 1.0
+        # Relative to the value, but never below an absolute 1e-3: a parameter at or near zero
+        # (a buoyancy of 1e-226) moved relative to itself would move the trajectory by less
+        # than its round-off, and no reference could see the slope.
+        direction[i] = max(abs(p[i]), 1e-3)
         inputs.append((name, p, direction))
 
     def run(x: np.ndarray, which: str) -> np.ndarray:

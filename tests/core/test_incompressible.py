@@ -96,6 +96,16 @@ def test_the_adjoint_is_the_transposed_tangent(boundaries, density):
         assert err < 1e-12, (obstacle, err)
 
 
+@pytest.mark.parametrize("buoyancy", [0.0, 1e-226, -1e-8])
+def test_the_checker_passes_a_buoyancy_at_or_near_zero(buoyancy):
+    # The buoyancy's range holds zero; a parameter moved only relative to its own value would
+    # not move the flow at all there, and the checker would report a wrong gradient.
+    s = Incompressible2D(nx=3, ny=3, boundaries="inflow outflow wall wall", profile="uniform",
+                         density=True, nu=0.03125, buoyancy=buoyancy, dt=0.03125)
+    rows = check_stepper(s, steps=1, seed=0, batch=1)
+    assert all(r.passed for r in rows), [r for r in rows if not r.passed]
+
+
 @pytest.mark.parametrize("boundaries", SCENES)
 def test_the_maccormack_adjoint_is_the_transposed_tangent(boundaries):
     for obstacle in (None, "box"):

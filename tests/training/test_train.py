@@ -242,7 +242,7 @@ def test_resume_without_a_checkpoint_is_one_line(tiny, tmp_path):
            str(tmp_path / "none"), "--resume"]
     proc = subprocess.run(cmd, env={**os.environ, "TQDM_DISABLE": "1"}, capture_output=True,
                           text=True)
-    assert proc.returncode == 2 and "no checkpoint" in proc.stderr
+    assert proc.returncode == 2 and "holds no run to continue" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
