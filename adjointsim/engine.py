@@ -447,6 +447,15 @@ def _round(x: float) -> float:
     return x if isinstance(x, int) else round(x, 1)
 
 
+class Saved(Interrupted):
+    """Ctrl-C once the checkpoints are saved: ``--resume`` with ``--out`` :attr:`out` continues
+    the run (an ensemble's members: the folders in it). The command line prints that command."""
+
+    def __init__(self, message: str, out: Path):
+        super().__init__(message)
+        self.out = out
+
+
 @contextmanager
 def run_errors(outs: Sequence[Path]) -> Iterator[None]:
     """How the Ctrl-C and file errors of the runs in ``outs`` (one run, or an ensemble's
@@ -462,8 +471,8 @@ def run_errors(outs: Sequence[Path]) -> Iterator[None]:
             raise Interrupted("stopped before the first checkpoint: nothing to resume, run the "
                               "command again") from None
         where = saved[0] if len(outs) == 1 else saved[0].parent
-        raise Interrupted(f"the checkpoint is saved; continue with the same command and "
-                          f"--resume (--out {where})") from None
+        raise Saved(f"the checkpoint is saved; continue with the same command and "
+                    f"--resume (--out {where})", where) from None
     except (RunExists, FileNotFoundError):
         raise
     except OSError as e:

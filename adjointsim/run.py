@@ -74,34 +74,47 @@ class Config:
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = {}
 
     @classmethod
-    def load(cls, path: str | Path | None = None, **overrides: Any) -> Any:
+    def load(cls, path: str | Path | None = None, recorded: dict | None = None,
+             **overrides: Any) -> Any:
         """A config from a TOML file (optional) with keyword overrides (None means unset);
-        unknown keys, wrong types and values outside :attr:`ACCEPTED` fail naming the key."""
-        values: dict[str, Any] = {}
+        unknown keys, wrong types and values outside :attr:`ACCEPTED` fail naming the key.
+        ``recorded`` (a run's ``config.json``, to continue it) stands in for the defaults: the
+        file and the overrides are laid over its keys of this config (any other is an
+        earlier version's, left out); a key it lacks takes its default."""
+        known = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
+        values: dict[str, Any] = {k: v for k, v in (recorded or {}).items() if k in known}
+        file: dict[str, Any] = {}
         if path is not None:
             try:
                 with open(path, "rb") as f:
-                    values.update(tomllib.load(f))
+                    file = tomllib.load(f)
             except FileNotFoundError:
                 raise FileNotFoundError(f"no config file at {path}") from None
             except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
                 raise UserError(f"{path} is not valid TOML: {e}") from None
             except OSError as e:
                 raise UserError(f"cannot read config {path}: {e.strerror or e}") from None
-        for key, value in overrides.items():
-            if value is None:
-                continue
-            # a table (the scene) takes the flags' keys over the file's, key by key
-            if isinstance(value, dict) and isinstance(values.get(key), dict):
-                value = {**values[key], **value}
-            values[key] = value
-        known = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
+        for layer in (file, overrides):
+            for key, value in layer.items():
+                if value is None:
+                    continue
+                # a table (the scene) takes the later layer's keys over the earlier's, one by one
+                if isinstance(value, dict) and isinstance(values.get(key), dict):
+                    value = {**values[key], **value}
+                values[key] = value
         for key in values:
             if key not in known:
                 close = difflib.get_close_matches(key, known, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 raise UserError(f"unknown config option {key!r}{hint}; valid options: "
                                 f"{', '.join(known)}")
+        needed = [f.name for f in dataclasses.fields(cls)  # type: ignore[arg-type]
+                  if f.name not in values and f.default is dataclasses.MISSING
+                  and f.default_factory is dataclasses.MISSING]
+        if needed:
+            key = needed[0]
+            what = f"; accepted: {cls.accepted(key)}" if key in cls.ACCEPTED else ""
+            raise UserError(f"config key {key!r} is needed{what}")
         cfg = cls(**values)
         cfg.validate(f" in {path}" if path is not None else "")
         return cfg

@@ -16,7 +16,10 @@ from collections.abc import Sequence
 
 from adjointsim import __version__, registry
 from adjointsim.compiling import announce_compiles
+from adjointsim.engine import Saved
 from adjointsim.errors import UserError
+
+from .options import resume_command
 
 #: every command, its module under ``adjointsim.cli`` and its one line of help
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -76,6 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if command is None and not {"-h", "--help", "--version"} & set(argv):
         build_parser().print_help(sys.stderr)
         return 2
+    args = None
     try:
         try:
             args = build_parser(command).parse_args(argv)
@@ -95,6 +99,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except KeyboardInterrupt as e:
         hint = e.args[0] if e.args else "files are written atomically, so run the command again"
+        if isinstance(e, Saved):  # the whole command, which needs none of the run's flags
+            hint += f", or just: {resume_command(command, e.out, args)}"
         print(f"adjointsim {command}: interrupted; {hint}", file=sys.stderr)
         return 130
     except USER_ERRORS as e:

@@ -9,6 +9,7 @@ from .options import (
     THREADS_HELP,
     config_flags,
     overrides,
+    resumed,
     run_options,
     scene_of,
     scene_option,
@@ -39,7 +40,8 @@ def _flag(key: str) -> str:
 def arguments(p: argparse.ArgumentParser) -> None:
     from adjointsim.train.control import TASKS, ControlConfig
 
-    p.add_argument("task", choices=tuple(TASKS.names()), help="the control problem")
+    p.add_argument("task", nargs="?", choices=tuple(TASKS.names()), default=None,
+                   help="the control problem (with --resume, the run's)")
     run_options(p, "runs/control-TASK-MODE")
     config_flags(p, ControlConfig, ControlConfig.ACCEPTED, skip=("task", "out", "scene"),
                  helps=_HELPS)
@@ -70,17 +72,24 @@ def _level(args: argparse.Namespace, task: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.train.control import ControlConfig, train_controller
+    from adjointsim.errors import UserError
+    from adjointsim.train.control import TASKS, ControlConfig, train_controller
 
     values = overrides(args, ControlConfig)
-    values.setdefault("level", _level(args, args.task))
     values["scene"] = scene_of(args)
     if args.out is not None:
         values["out"] = str(args.out)
-    cfg = ControlConfig.load(args.config, **values)
-    if args.out is None and cfg.out == ControlConfig.out:  # neither flag nor file chose one
-        cfg.out = str(Path("runs") / f"control-{cfg.task}-{cfg.mode}")
-    out = Path(cfg.out)
+    recorded = resumed(args, lambda: _out(ControlConfig.load(args.config, **values)))
+    task = args.task or (recorded or {}).get("task")
+    if task is None:
+        raise UserError(f"the task is needed: adjointsim control TASK ({', '.join(TASKS.names())}"
+                        "); a run is continued without it by --resume --out DIR")
+    level = _level(args, task)
+    if level is not None:
+        values["level"] = level
+    cfg = ControlConfig.load(args.config, recorded=recorded, **values)
+    out = args.out if args.out is not None else _out(cfg)
+    cfg.out = str(out)
     if args.seeds:
         return _ensemble(args, cfg, out)
     task = cfg.make_task()
@@ -91,6 +100,15 @@ def run(args: argparse.Namespace) -> int:
                               overwrite=args.overwrite)
     write_result(args, result)
     return _report(result, out, "final test loss")
+
+
+def _out(cfg) -> Path:
+    """The run directory: the config's, else one named by the task and the mode."""
+    from adjointsim.train.control import ControlConfig
+
+    if cfg.out == ControlConfig.out:  # neither flag nor file chose one
+        return Path("runs") / f"control-{cfg.task}-{cfg.mode}"
+    return Path(cfg.out)
 
 
 def _report(result: dict, out: Path, what: str) -> int:

@@ -12,6 +12,7 @@ from .options import (
     out_option,
     overrides,
     progress_option,
+    run_config,
     scene_of,
     scene_option,
     threads_option,
@@ -77,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
     from adjointsim.fit_run import FitConfig, run_fit
 
     parallel.set_threads(args.threads)
-    cfg = FitConfig.load(args.config, **{**overrides(args, FitConfig), "scene": scene_of(args)})
-    out = args.out or Path(f"runs/fit-{cfg.demo or cfg.solver or 'fit'}")
+    cfg = run_config(args, FitConfig, {**overrides(args, FitConfig), "scene": scene_of(args)},
+                     _default_out)
+    out = args.out or _default_out(cfg)
     summary = run_fit(cfg, out, resume=args.resume, overwrite=args.overwrite,
                       progress=args.progress, plots=args.plots)
     extra = "".join(f", {k} = {v:.3g}" for k, v in summary.items()
@@ -94,3 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         write_json(args.json, summary)
     return 0
+
+
+def _default_out(cfg) -> Path:
+    return Path(f"runs/fit-{cfg.demo or cfg.solver or 'fit'}")

@@ -11,6 +11,7 @@ from .options import (
     at_least,
     config_flags,
     overrides,
+    run_config,
     run_options,
     scene_of,
     scene_option,
@@ -29,7 +30,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
     from adjointsim.train.hig_problems import HigConfig
     from adjointsim.train.higs import PROBLEMS
 
-    p.add_argument("problem", choices=PROBLEMS.names(), help="the problem (config key problem)")
+    p.add_argument("problem", nargs="?", choices=PROBLEMS.names(), default=None,
+                   help="the problem (config key problem; with --resume, the run's)")
     run_options(p, "runs/hig-PROBLEM-OPTIMIZER-seedSEED")
     # budget and max_updates accept None (the problem's budget, no limit), so their flags are
     # spelled here rather than by config_flags
@@ -48,8 +50,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from adjointsim.train.hig_problems import HigConfig, train_run
 
-    cfg = HigConfig.load(args.config, **{**overrides(args, HigConfig), "scene": scene_of(args)})
-    out = args.out or Path("runs") / f"hig-{cfg.problem}-{cfg.optimizer}-seed{cfg.seed}"
+    cfg = run_config(args, HigConfig, {**overrides(args, HigConfig), "scene": scene_of(args)},
+                     _default_out)
+    out = args.out or _default_out(cfg)
     result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
                        progress=args.progress)
     write_result(args, result)
@@ -58,3 +61,7 @@ def run(args: argparse.Namespace) -> int:
           f"{result['wall_s']:.1f} s, test loss "
           f"{'diverged' if loss is None else f'{loss:.4g}'}; run in {out}")
     return 0
+
+
+def _default_out(cfg) -> Path:
+    return Path("runs") / f"hig-{cfg.problem}-{cfg.optimizer}-seed{cfg.seed}"

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import shlex
 import typing
 from collections.abc import Callable
 from pathlib import Path
@@ -88,6 +90,45 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
         results = train_members(cfgs, resume=args.resume, progress=args.progress,
                                  overwrite=args.overwrite)
     return cfgs, results
+
+
+def resumed(args: argparse.Namespace, default_out: Callable[[], Path]) -> dict | None:
+    """With ``--resume``: the configuration the run to continue recorded (its ``config.json``
+    in ``--out``, else in ``default_out()``; with ``--seeds``, the first member's there), for
+    :meth:`~adjointsim.run.Config.load` to lay the flags given over. So ``--resume --out DIR``
+    alone continues a run as it was started, and a flag beside it changes only its own key
+    (the engine names a key that a run cannot change when continued). None without
+    ``--resume``, or where no run is recorded (the engine then says so)."""
+    if not args.resume:
+        return None
+    out = args.out if args.out is not None else default_out()
+    seeds = getattr(args, "seeds", None)
+    for folder in [out / f"seed{s}" for s in seeds] if seeds else [out]:
+        try:
+            theirs = json.loads((folder / "config.json").read_text())
+        except (OSError, ValueError, UnicodeDecodeError):
+            continue
+        if isinstance(theirs, dict):
+            return theirs
+    return None
+
+
+def run_config(args: argparse.Namespace, cls: type, values: dict[str, Any],
+               default_out: Callable[[Any], Path]) -> Any:
+    """A command's config: the ``--config`` file, then the flags given (``values``, None for
+    one not given), over the defaults, or with ``--resume`` over the run's recorded
+    configuration (:func:`resumed`; ``default_out(config)`` is where the run lives when
+    ``--out`` is not given)."""
+    recorded = resumed(args, lambda: default_out(cls.load(args.config, **values)))
+    return cls.load(args.config, recorded=recorded, **values)
+
+
+def resume_command(command: str, out: Path, args: argparse.Namespace | None) -> str:
+    """The command line that continues the run in ``out`` (an ensemble's: with its seeds)."""
+    seeds = getattr(args, "seeds", None)
+    words = ["adjointsim", command, "--resume", "--out", str(out),
+             *(["--seeds", *map(str, seeds)] if seeds else [])]
+    return shlex.join(words)
 
 
 def json_option(p: argparse.ArgumentParser, help_text: str = "also write the result rows "

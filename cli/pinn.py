@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import THREADS_HELP, config_flags, overrides, run_options, write_result
+from .options import (
+    THREADS_HELP,
+    config_flags,
+    overrides,
+    run_config,
+    run_options,
+    write_result,
+)
 
 _HELPS = {
     "k": "the Poisson wavenumber: ω = kπ",
@@ -39,7 +46,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
         return ", ".join(f"{name} {getattr(cls, key)}" for name, cls in problems)
 
     p.add_argument("problem", nargs="?", choices=PROBLEMS.names(), default=None,
-                   help="the problem (default poisson, or the --config file's)")
+                   help="the problem (default poisson, or the --config file's; with --resume, "
+                   "the run's)")
     run_options(p, "runs/pinn-PROBLEM-kK-WEIGHTING-seedS")
     helps = {**_HELPS, "epochs": f"0: the problem's ({each('epochs')})",
              "width": f"hidden units per layer; 0: the problem's ({each('width')})"}
@@ -49,9 +57,9 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from adjointsim.train import pinn
 
-    cfg = pinn.PinnConfig.load(args.config, **overrides(args, pinn.PinnConfig))
-    name = f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
-    out = args.out or Path("runs") / f"pinn-{name}-{cfg.weighting}-seed{cfg.seed}"
+    cfg = run_config(args, pinn.PinnConfig, overrides(args, pinn.PinnConfig), _default_out)
+    name = _name(cfg)
+    out = args.out or _default_out(cfg)
     result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,
                             overwrite=args.overwrite)
     write_result(args, result)
@@ -65,3 +73,11 @@ def run(args: argparse.Namespace) -> int:
           + "".join(f", {k} {v:.4g}" for k, v in result["coefficients"].items())
           + f"; run in {out}")
     return 0
+
+
+def _name(cfg) -> str:
+    return f"{cfg.problem}-k{cfg.k}" if cfg.problem == "poisson" else cfg.problem
+
+
+def _default_out(cfg) -> Path:
+    return Path("runs") / f"pinn-{_name(cfg)}-{cfg.weighting}-seed{cfg.seed}"

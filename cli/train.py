@@ -11,6 +11,7 @@ from .options import (
     THREADS_HELP,
     config_flags,
     overrides,
+    run_config,
     run_options,
     scene_of,
     scene_option,
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError:
             raise UserError(f"--curriculum {text!r} is not a list of stages m:lr, e.g. "
                             '"1:1e-4,2:1e-5"') from None
-    cfg = TrainConfig.load(args.config, **values)
+    cfg = run_config(args, TrainConfig, values, lambda c: Path(c.out))
     out = Path(cfg.out)
     if args.seeds:
         from adjointsim.train.ensemble import train_ensemble

@@ -177,7 +177,8 @@ def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path,
     # Ctrl-C at the first update: the engine saves the checkpoint first
     assert err.splitlines()[-1].endswith("adjointsim train: interrupted; the checkpoint is saved; "
                                          f"continue with the same command and --resume (--out "
-                                         f"{tmp_path / 'r'})")
+                                         f"{tmp_path / 'r'}), or just: adjointsim train "
+                                         f"--resume --out {tmp_path / 'r'}")
 
 
 def test_eval_missing_directory_and_bad_horizons(tiny, tmp_path, capsys):
