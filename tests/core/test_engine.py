@@ -104,9 +104,11 @@ def test_fresh_run_writes_config_history_result(tmp_path):
 
 def test_interrupted_run_resumes_bit_identically(tmp_path):
     whole = engine.run(count(tmp_path / "a"), progress=False)
-    with pytest.raises(KeyboardInterrupt, match="--resume"):
+    with pytest.raises(engine.Saved, match="--resume") as stopped:
         engine.run(count(tmp_path / "b", stop_at=3), progress=False)
+    assert stopped.value.out == tmp_path / "b"  # what the command line's resume command names
     assert not (tmp_path / "b" / "result.json").exists()
+    assert len((tmp_path / "b" / "history.csv").read_text().splitlines()) == 1 + 3  # epochs 1-3
     with pytest.raises(RunExists, match="unfinished run; continue it with --resume"):
         engine.run(count(tmp_path / "b"), progress=False)
     resumed = engine.run(count(tmp_path / "b", threads=2), resume=True, progress=False)
