@@ -17,6 +17,7 @@ from .options import (
     scene_option,
     write_result,
 )
+from .study import TINY_NOTE
 
 _HELPS = {
     "optimizer": "half-inverse gradients, Gauss-Newton or Adam, each with the problem's batch "
@@ -60,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{cfg.problem}/{cfg.optimizer} seed {cfg.seed}: {result['updates']} updates in "
           f"{result['wall_s']:.1f} s, test loss "
           f"{'diverged' if loss is None else f'{loss:.4g}'}; run in {out}")
+    if cfg.size == "tiny":
+        print(TINY_NOTE)
     return 0
 
 

@@ -11,10 +11,37 @@ from adjointsim.errors import Interrupted
 
 from .options import at_least, json_option, progress_option
 
+#: every registered study, one line each (a test holds it to the runner's registry)
+STUDIES = {
+    "ks": "KS neural steppers: prediction/correction x ONE/NOG/WIG",
+    "kolmogorov": "the same on 2D Kolmogorov flow",
+    "karman": "the same on the cylinder wake (sequential correction)",
+    "ks-curves": "learning curves of KS correction, ONE, NOG and WIG",
+    "stablebptt": "controllers with the gradient flows R, M, S, N and C",
+    "hig": "half-inverse gradients against Gauss-Newton and Adam",
+    "pinn-poisson": "multi-scale Poisson PINN: uniform vs inverse-Dirichlet",
+    "pinn-ks-inverse": "KS coefficients learned by a PINN, with loss balancing",
+    "weighting": "every loss-weighting scheme on PINNs and guidance",
+    "weighting-forgetting": "loss weights when a term of another scale joins",
+    "fit-params": "KS coefficients fitted to noisy snapshots",
+    "burgers-dp-pinn": "a Burgers initial state: differentiable physics vs PINN",
+    "burgers-nu-dp-pinn": "the Burgers viscosity: differentiable physics vs PINN",
+    "smoke": "a smoke inflow optimised through the flow's adjoint",
+    "stability": "the largest stable time step of every solver",
+}
+
+
+#: printed under a result of size tiny, which can look like a failure
+TINY_NOTE = ("size tiny only checks that the pipeline runs: its numbers say nothing about the "
+             "methods (a larger --size measures them)")
+
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("problem", metavar="NAME", help="ks, kolmogorov, stablebptt, hig, "
-                   "pinn-poisson, stability, ... (an unknown name lists them)")
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    width = max(map(len, STUDIES))
+    p.epilog = "studies:\n" + "\n".join(f"  {name:<{width}}  {text}"
+                                          for name, text in STUDIES.items())
+    p.add_argument("problem", metavar="NAME", help="the study (listed below)")
     p.add_argument("--quick", action="store_const", const="quick", dest="size",
                    help="a reduced study (minutes); same as --size quick")
     p.add_argument("--size", default="full",
@@ -64,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
                           "others resume from their checkpoints") from None
     if rows:
         print(runner.write_report(args.problem, rows, out.resolve()))
+        if args.size == "tiny":
+            print(TINY_NOTE)
     if args.json:
         write_json(args.json, rows)
     for cell_id, error in failed:

@@ -26,6 +26,21 @@ _HELPS = {
     "curriculum": 'stages "m:lr,m:lr,...", e.g. "1:1e-4,2:1e-5,4:1e-6"',
     "max_iterations": "stop after this many iterations in total, unfinished: continue with "
                       "--resume (0: no limit)",
+    "correction": "how a correction is applied: parallel û' = S(û) + Δt·f(û), sequential "
+                  "ũ = S(û), û' = ũ + f(ũ)",
+    "unroll": "steps m unrolled per window; the loss is their mean error",
+    "lr_decay": "factor on the learning rate every --lr-decay-every iterations",
+    "stride": "frames between two windows' starts (1: every window; 8: an eighth of them)",
+    "warmup": "steps the network takes from a window's start before the loss, without "
+              "gradient (pushforward)",
+    "truncate": "cut the gradient every k unrolled steps (truncated BPTT; 0: never)",
+    "spike_factor": "skip an update whose gradient norm exceeds this multiple of the running "
+                    "mean",
+    "rollback": "back to the best weights at half the learning rate when the median loss "
+                "rises above this multiple of the best (0: off, else > 1)",
+    "checkpoint_every": "iterations between two checkpoints (and history writes)",
+    "eval_every": "updates between measurements of the test error (curve.csv; 0: none)",
+    "eval_horizon": "steps of those measurements",
     "threads": THREADS_HELP,
 }
 
