@@ -37,6 +37,7 @@ CSS = """\
 .md-grid { max-width: 1600px; }
 .md-typeset table:not([class]) td:first-child code,
 .md-typeset table:not([class]) td:last-child code { white-space: nowrap; }
+.md-typeset code .nobreak { white-space: nowrap; }
 """
 
 #: test files that run over every registered solver, and what they verify there
@@ -186,6 +187,22 @@ def on_page_markdown(markdown: str, page, **kwargs):
 _ROLE = re.compile(r":(?:class|meth|func|attr|mod|data|exc|obj):(?=<code)")
 
 
+#: a reST literal-block marker ("the fast path::") ending a paragraph of a docstring: Markdown
+#: shows the code block below it as it is and the second colon as text
+_LITERAL_MARKER = re.compile(r"(?<=\w)::(?=</p>)")
+#: inline code (not a code block's); browsers break a line after a hyphen, also inside code,
+#: which splits an option such as --threads into "-" and "-threads"
+_INLINE_CODE = re.compile(r"(?<!<pre>)(?<!</span>)<code>([^<]*)</code>")
+_HYPHENATED = re.compile(r"[^\s]*-[^\s]*")
+
+
+def _unbroken(match: re.Match) -> str:
+    """Inline code whose hyphenated words (options, paths, solver names) never break."""
+    inner = _HYPHENATED.sub(lambda m: f'<span class="nobreak">{m.group()}</span>', match[1])
+    return f"<code>{inner}</code>"
+
+
 def on_page_content(content: str, page, **kwargs):
-    return _ROLE.sub("", content)
+    content = _LITERAL_MARKER.sub(":", _ROLE.sub("", content))
+    return _INLINE_CODE.sub(_unbroken, content)
 

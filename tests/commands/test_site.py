@@ -76,6 +76,17 @@ def test_the_site_builds_strictly_and_names_every_solver_and_command(tmp_path):
                    "adjointsim.train.hig.HalfInverseGradients",
                    "adjointsim.train.weighting.Weighting", "adjointsim.nets.ResNet"):
         assert f'id="{anchor}"' in api, f"the API reference lacks {anchor}"
+    # a docstring's reST literal-block marker shows as text
+    literal = re.findall(r".{40}\w::(?!\w).{20}", text_of(tmp_path / "api" / "index.html"))
+    assert not literal, f"a literal '::' in the API reference: {literal}"
+
+    # every page is in the navigation, and no option in inline code can break at its hyphen
+    assert "not included in the \"nav\"" not in proc.stdout + proc.stderr, proc.stderr
+    for page in sorted(tmp_path.rglob("*.html")):
+        html_text = page.read_text(encoding="utf-8")
+        for code in re.findall(r"(?<!<pre>)(?<!</span>)<code>(.*?)</code>", html_text, re.S):
+            bare = re.sub(r'<span class="nobreak">[^<]*</span>', "", code)
+            assert "--" not in re.sub(r"<[^>]+>", "", bare), (page, code)
 
 
 RESULT_SUFFIXES = {".png", ".json", ".txt", ".csv", ".md"}
