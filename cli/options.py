@@ -160,7 +160,9 @@ def run_options(p: argparse.ArgumentParser, out_default: str, config: bool = Tru
     out_option(p, out_default)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
-                       help="continue the unfinished run in --out from its checkpoint")
+                       help="continue the run in --out from its checkpoint, with the "
+                       "configuration it recorded: --resume --out DIR alone is enough, a flag "
+                       "given beside it changes its key")
     again.add_argument("--overwrite", action="store_true",
                        help="discard the run already in --out and start again")
     if config:
