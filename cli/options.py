@@ -114,12 +114,15 @@ def resumed(args: argparse.Namespace, default_out: Callable[[], Path]) -> dict |
 
 
 def run_config(args: argparse.Namespace, cls: type, values: dict[str, Any],
-               default_out: Callable[[Any], Path]) -> Any:
+               default_out: Callable[[Any], Path], fresh: tuple[str, ...] = ()) -> Any:
     """A command's config: the ``--config`` file, then the flags given (``values``, None for
     one not given), over the defaults, or with ``--resume`` over the run's recorded
     configuration (:func:`resumed`; ``default_out(config)`` is where the run lives when
-    ``--out`` is not given)."""
+    ``--out`` is not given). The ``fresh`` keys hold for one invocation (a cap on its updates):
+    they take their defaults, not the record's."""
     recorded = resumed(args, lambda: default_out(cls.load(args.config, **values)))
+    if recorded is not None:
+        recorded = {k: v for k, v in recorded.items() if k not in fresh}
     return cls.load(args.config, recorded=recorded, **values)
 
 

@@ -69,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
         except ValueError:
             raise UserError(f"--curriculum {text!r} is not a list of stages m:lr, e.g. "
                             '"1:1e-4,2:1e-5"') from None
-    cfg = run_config(args, TrainConfig, values, lambda c: Path(c.out))
+    # a run stopped by --max-iterations goes on to its end unless a new cap is given
+    cfg = run_config(args, TrainConfig, values, lambda c: Path(c.out), fresh=("max_iterations",))
     out = Path(cfg.out)
     if args.seeds:
         from adjointsim.train.ensemble import train_ensemble

@@ -133,3 +133,16 @@ def test_a_task_or_problem_is_needed_without_a_run_to_resume(tmp_path, capsys):
     assert "config key 'problem' is needed" in capsys.readouterr().err
     assert main(["hig", "--resume", "--out", str(tmp_path / "c")]) == 2
     assert "config key 'problem' is needed" in capsys.readouterr().err
+
+
+def test_a_run_stopped_by_its_iteration_cap_resumes_to_its_end(tiny, tmp_path, capsys):
+    """--max-iterations caps one invocation, not the run: --resume --out DIR alone goes on to
+    the end of the run instead of stopping at the recorded cap again."""
+    out = tmp_path / "run"
+    args = [a.format(tiny=tiny) for a in COMMANDS["train"]]
+    assert main([*args, "--no-progress", "--out", str(out), "--max-iterations", "1"]) == 0
+    assert not (out / "result.json").exists()
+    assert main(["train", "--resume", "--out", str(out), "--no-progress"]) == 0, \
+        capsys.readouterr().err
+    result = json.loads((out / "result.json").read_text())
+    assert result["iterations"] > 1 and result["max_iterations"] == 0
