@@ -1,6 +1,7 @@
 """Lightweight torch networks for neural time-steppers and correctors.
 
-All convolutional networks pad circularly (periodic domains) and work in 1D or 2D (``dims``).
+All convolutional networks pad circularly (periodic domains) by default, or with zeros or the
+edge values (``padding``: domains with walls and open sides), and work in 1D or 2D (``dims``).
 """
 
 from .dilated import DilatedResNet

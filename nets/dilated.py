@@ -15,5 +15,7 @@ class DilatedResNet(ResNet):
         width: int = 32,
         dilations: tuple[int, ...] = (1, 2, 4, 8, 4, 2, 1),
         kernel: int = 3,
+        padding: str = "circular",
     ):
-        super().__init__(in_channels, out_channels, dims, width, len(dilations), kernel, dilations)
+        super().__init__(in_channels, out_channels, dims, width, len(dilations), kernel, dilations,
+                         padding)

@@ -1,6 +1,7 @@
-"""ResNet with circular padding, as in List et al.: an encoder convolution, residual blocks of
-two convolutions with LeakyReLU, a decoder convolution. Presets: ``small`` = width 26 × 8 blocks
-(≈ 33k parameters in 1D with two input channels), ``large`` = 52 × 12 (≈ 196k)."""
+"""ResNet with circular padding (or ``padding`` zeros/replicate for walls), as in List et al.:
+an encoder convolution, residual blocks of two convolutions with LeakyReLU, a decoder
+convolution. Presets: ``small`` = width 26 × 8 blocks (≈ 33k parameters in 1D with two input
+channels), ``large`` = 52 × 12 (≈ 196k)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,11 @@ PRESETS = {"small": (26, 8), "large": (52, 12)}
 
 
 class _Block(nn.Module):
-    def __init__(self, dims: int, width: int, kernel: int, dilation: int = 1):
+    def __init__(self, dims: int, width: int, kernel: int, dilation: int = 1,
+                 padding: str = "circular"):
         super().__init__()
-        self.conv1 = conv(dims, width, width, kernel, dilation)
-        self.conv2 = conv(dims, width, width, kernel, dilation)
+        self.conv1 = conv(dims, width, width, kernel, dilation, padding)
+        self.conv2 = conv(dims, width, width, kernel, dilation, padding)
         self.act = nn.LeakyReLU()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -33,12 +35,13 @@ class ResNet(nn.Module):
         blocks: int = 8,
         kernel: int = 3,
         dilations: tuple[int, ...] | None = None,
+        padding: str = "circular",
     ):
         super().__init__()
         dilations = dilations or (1,) * blocks
-        self.encode = conv(dims, in_channels, width, kernel)
-        self.blocks = nn.Sequential(*[_Block(dims, width, kernel, d) for d in dilations])
-        self.decode = conv(dims, width, out_channels, kernel)
+        self.encode = conv(dims, in_channels, width, kernel, padding=padding)
+        self.blocks = nn.Sequential(*[_Block(dims, width, kernel, d, padding) for d in dilations])
+        self.decode = conv(dims, width, out_channels, kernel, padding=padding)
 
     @classmethod
     def preset(cls, name: str, in_channels: int, out_channels: int, dims: int = 1) -> ResNet:

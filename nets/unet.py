@@ -1,6 +1,6 @@
-"""A small U-Net with circular padding: ``levels`` down-sampling stages (average pooling),
-channel count doubling per level, nearest up-sampling and skip connections. Grid sizes must be
-divisible by 2**levels."""
+"""A small U-Net with circular padding (or ``padding`` zeros/replicate): ``levels``
+down-sampling stages (average pooling), channel count doubling per level, nearest up-sampling
+and skip connections. Grid sizes must be divisible by 2**levels."""
 
 from __future__ import annotations
 
@@ -11,25 +11,28 @@ from torch.nn import functional as F
 from .layers import conv
 
 
-def _double(dims: int, c_in: int, c_out: int) -> nn.Module:
-    return nn.Sequential(conv(dims, c_in, c_out), nn.GELU(), conv(dims, c_out, c_out), nn.GELU())
+def _double(dims: int, c_in: int, c_out: int, padding: str) -> nn.Module:
+    return nn.Sequential(conv(dims, c_in, c_out, padding=padding), nn.GELU(),
+                         conv(dims, c_out, c_out, padding=padding), nn.GELU())
 
 
 class UNet(nn.Module):
     def __init__(
-        self, in_channels: int, out_channels: int, dims: int = 1, width: int = 16, levels: int = 2
+        self, in_channels: int, out_channels: int, dims: int = 1, width: int = 16, levels: int = 2,
+        padding: str = "circular",
     ):
         super().__init__()
         self.dims, self.levels = dims, levels
         widths = [width * 2**i for i in range(levels + 1)]
         self.down = nn.ModuleList(
-            [_double(dims, in_channels, widths[0])]
-            + [_double(dims, widths[i], widths[i + 1]) for i in range(levels)]
+            [_double(dims, in_channels, widths[0], padding)]
+            + [_double(dims, widths[i], widths[i + 1], padding) for i in range(levels)]
         )
         self.up = nn.ModuleList(
-            [_double(dims, widths[i + 1] + widths[i], widths[i]) for i in reversed(range(levels))]
+            [_double(dims, widths[i + 1] + widths[i], widths[i], padding)
+             for i in reversed(range(levels))]
         )
-        self.out = conv(dims, widths[0], out_channels, kernel=1)
+        self.out = conv(dims, widths[0], out_channels, kernel=1, padding=padding)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         factor = 2**self.levels

@@ -41,6 +41,10 @@ class Problem:
     sizes: ClassVar[dict[str, dict]]
     #: the scene keys a user may set, with the paper's values
     SCENE: ClassVar[dict[str, Any]] = {}
+    #: state channels (the network sees them and the condition, and returns as many)
+    channels: ClassVar[int] = 1
+    #: the networks' padding: circular on periodic domains, else zeros or replicate
+    padding: ClassVar[str] = "circular"
 
     def __init__(self, scene: dict[str, Any] | None = None):
         given = dict(scene or {})

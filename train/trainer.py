@@ -161,8 +161,9 @@ def build_model(cfg: TrainConfig) -> NeuralStepper:
     kwargs = {"width": cfg.width}
     if cfg.net == "resnet":
         kwargs["blocks"] = cfg.blocks
-    # One state channel plus the conditioning channel in, one state channel out.
-    net = CONV_NETS[cfg.net](2, 1, problem.dims, **kwargs).to(DTYPES[cfg.dtype])
+    # The state's channels plus the conditioning channel in, the state's channels out.
+    net = CONV_NETS[cfg.net](problem.channels + 1, problem.channels, problem.dims,
+                             padding=problem.padding, **kwargs).to(DTYPES[cfg.dtype])
     solver = problem.coarse if cfg.setup == "correction" else None
     return NeuralStepper(net, cfg.setup, solver, cfg.correction)
 

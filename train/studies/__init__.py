@@ -1,15 +1,16 @@
 """The studies run by ``adjointsim study NAME``. Each module here registers its studies with
 :func:`adjointsim.runner.register_study` when imported; :func:`load_all` imports every one, and
 the solver-only studies of the core (the ``stability`` sweep of :mod:`adjointsim.stability`,
-the ``fit-params`` table of :mod:`adjointsim.fit_study`), so adding a study means adding a
-module here, nothing else. :func:`load` registers one study with what it needs alone, so a
-study of the core starts without importing torch."""
+the ``fit-params`` table of :mod:`adjointsim.fit_study`, the ``smoke`` optimisation of
+:mod:`adjointsim.smoke_study`), so adding a study means adding a module here, nothing else.
+:func:`load` registers one study with what it needs alone, so a study of the core starts
+without importing torch."""
 
 import importlib
 import pkgutil
 
 #: the core's studies: they need no torch, and register themselves like the modules here
-CORE_STUDIES = ("adjointsim.stability", "adjointsim.fit_study")
+CORE_STUDIES = ("adjointsim.stability", "adjointsim.fit_study", "adjointsim.smoke_study")
 
 
 def load_all() -> None:

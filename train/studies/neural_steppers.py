@@ -1,6 +1,7 @@
 """The neural time-stepper studies of List et al.: setups × unroll modes × seeds, trained,
-evaluated and tabulated (mean ± std per cell), with a plot; ``ks`` (Kuramoto–Sivashinsky) and
-``kolmogorov`` (2D Kolmogorov flow), run by :mod:`adjointsim.runner`.
+evaluated and tabulated (mean ± std per cell), with a plot; ``ks`` (Kuramoto–Sivashinsky),
+``kolmogorov`` (2D Kolmogorov flow) and ``karman`` (the cylinder wake of the physics-based deep
+learning book's solver-in-the-loop example), run by :mod:`adjointsim.runner`.
 
 Everything a study makes lives under its output directory: the dataset (made once, before the
 cells), and per cell ``SETUP-MODE-seedK/`` with the model's checkpoint (a retried cell resumes
@@ -25,9 +26,11 @@ from adjointsim.runner import Study, register_study
 from .. import data as datamod
 from ..ensemble import train_ensemble
 from ..evaluate import TEST_SPLITS, evaluate
+from ..problems import get_problem
 from ..trainer import DTYPES, TrainConfig, describe, train
 
-#: per problem: the grid, the evaluation horizon and the training settings per study size
+#: per problem: the grid, the evaluation horizon and the training settings per study size (a
+#: size may set its own horizon, and a dataset scene over the problem's)
 STUDIES = {
     "ks": {
         "setups": ("prediction", "correction"),
@@ -65,6 +68,23 @@ STUDIES = {
             "width": 32, "blocks": 6, "curriculum": [[1, 1e-3], [2, 1e-4], [4, 1e-5]],
             "epochs": 2, "stride": 4, "batch": 16, "correction": "sequential"}},
     },
+    # The book's solver-in-the-loop wake: the source solver corrected in the sequential form
+    # (Um et al.'s), scored over 100 frames (2.5 time units, two shedding periods).
+    "karman": {
+        "setups": ("correction",),
+        "modes": ("ONE", "NOG", "WIG"),
+        "horizon": 100,
+        "quick": {"data": "quick", "seeds": 3, "train": {
+            "width": 16, "blocks": 3, "unroll": 4, "epochs": 6, "stride": 2, "lr": 1e-3,
+            "lr_decay_every": 200, "batch": 8, "correction": "sequential"}},
+        # For tests: a 32 x 16 reference and an 16 x 8 source, the pipeline in seconds.
+        "tiny": {"data": "tiny", "seeds": 1, "horizon": 8, "scene": {"n": 16, "coarse_n": 8},
+                 "train": {"width": 4, "blocks": 1, "unroll": 2, "epochs": 1, "stride": 4,
+                           "lr": 1e-3, "batch": 4, "correction": "sequential"}},
+        "full": {"data": "full", "seeds": 3, "train": {
+            "width": 32, "blocks": 6, "unroll": 8, "epochs": 4, "stride": 2, "lr": 1e-3,
+            "lr_decay_every": 500, "batch": 16, "correction": "sequential"}},
+    },
 }
 
 
@@ -79,9 +99,11 @@ def _cells(problem: str, size: str, seeds: int | None) -> list[dict]:
 
 def _prepare(problem: str, size: str, out: Path) -> dict:
     """The dataset, made once in the calling process and shared by every cell."""
-    data_path = out / f"{problem}-{STUDIES[problem][size]['data']}.h5"
+    spec = STUDIES[problem][size]
+    data_path = out / f"{problem}-{spec['data']}.h5"
     if not data_path.exists():
-        datamod.save(datamod.generate(problem, STUDIES[problem][size]["data"], seed=0), data_path)
+        made = get_problem(problem, spec.get("scene"))
+        datamod.save(datamod.generate(made, spec["data"], seed=0), data_path)
     datamod.load(data_path)  # a damaged or stale file fails here, before any training
     return {"data": str(data_path.resolve())}
 
@@ -109,7 +131,7 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
 
 
 def _row(cell: dict, cfg: TrainConfig, model, run_dir: Path) -> dict:
-    metrics = evaluate(model, datamod.load(cell["data"]), STUDIES[cell["problem"]]["horizon"],
+    metrics = evaluate(model, datamod.load(cell["data"]), _horizon(cell["problem"], cell["size"]),
                        DTYPES[cfg.dtype], run_dir)
     loss, skipped = _history(run_dir)
     return {**cell, "model": describe(model), **metrics,
@@ -126,9 +148,14 @@ def _history(run_dir: Path) -> tuple[np.ndarray, int]:
 
 
 def _report(problem: str, rows: list[dict], out: Path) -> str:
-    write_summary(rows, out, STUDIES[problem]["horizon"])
+    write_summary(rows, out, _horizon(problem, rows[0]["size"]))
     return (table(rows) + f"\nplots: {out / 'study.png'}, learning curves {out / 'curves.png'}"
             f"; per-model results and rollout plots under {out}")
+
+
+def _horizon(problem: str, size: str) -> int:
+    """The steps over which a study's models are scored."""
+    return STUDIES[problem][size].get("horizon", STUDIES[problem]["horizon"])
 
 
 def table(rows: list[dict]) -> str:

@@ -1,0 +1,250 @@
+"""The ``smoke`` study: the physics-based deep learning book's "Differentiable Fluid Simulations"
+example with the hand-written adjoint of ``incompressible2d-sl`` (``adjointsim study smoke``).
+
+The scene is the book's: a closed box of 32 × 40 cells of side 1 with no-slip walls, no
+viscosity, Δt = 1, smoke fed in every step by a disc of radius 3 at an inflow location (0.2 per
+step inside it) and lifted by Boussinesq buoyancy (0.5); after n = 20 steps the smoke of the
+inflow at (16, 5) is the target. For each other inflow location of the book ((12, 4), (13, 6),
+(14, 5)) the initial velocity u_0 is optimised so that its smoke after n steps matches the
+target, the smoke's start (empty) and source fixed:
+
+    L(u_0) = ½ Σ_cells (ρ_n(u_0) − ρ*)²   (PhiFlow's ``l2_loss``),
+
+with the gradient from one reverse sweep (:meth:`Stepper.vjp` with the cotangent ρ_n − ρ* on
+the density, zero on the velocity). Two optimisers: the book's plain gradient descent (a fixed
+step, :data:`GD_RATE`) and L-BFGS-B. The initial speed is bounded by h/Δt (Courant number 1,
+the solver's limit for an initial state; the book's PhiFlow has none): gradient descent clips
+to it, L-BFGS-B takes it as bounds.
+
+Each cell is one optimisation; its row holds the loss after every iteration with the wall
+seconds since the start (numba compiles in an untimed gradient first). The report writes
+``smoke.md`` (the table), ``smoke.json`` (the rows), ``loss.png`` (loss against iteration and
+wall time) and ``fields.png`` (per location: the smoke reached from rest, the target, the smoke
+reached from the optimised u_0, and the optimised u_0's speed).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .runner import Study, register_study
+
+#: the book's inflow locations (cell units): the last one's smoke after n steps is the target
+LOCATIONS = ((12.0, 4.0), (13.0, 6.0), (14.0, 5.0), (16.0, 5.0))
+OPTIMISERS = ("gd", "lbfgs")
+#: gradient descent's step (in velocity per unit of the loss's gradient)
+GD_RATE = 0.1
+#: per size: the grid (cells across, up), the steps, the locations optimised and the iterations
+SIZES: dict[str, dict[str, Any]] = {
+    # the book's scene at half the resolution and half the steps, for tests
+    "tiny": {"nx": 16, "ny": 20, "steps": 10, "locations": 1, "iterations": 5},
+    "quick": {"nx": 32, "ny": 40, "steps": 20, "locations": 3, "iterations": 100},
+    "full": {"nx": 32, "ny": 40, "steps": 20, "locations": 3, "iterations": 400},
+}
+#: the book's smoke source per step inside its disc, disc radius (cells) and buoyancy
+SOURCE, RADIUS, BUOYANCY = 0.2, 3.0, 0.5
+
+
+def scene(nx: int, ny: int) -> Any:
+    """The closed box of ``nx`` × ``ny`` cells of side 32/nx (the book's at 32 × 40)."""
+    from . import get
+
+    return get("incompressible2d-sl")(nx=nx, ny=ny, length=32.0, dt=32.0 / nx, nu=0.0,
+                                      boundaries="wall wall wall wall", density=True,
+                                      buoyancy=BUOYANCY)
+
+
+def sources(flow: Any, location: tuple[float, float], steps: int) -> np.ndarray:
+    """The smoke source of every step (controls (steps, 1, 3, nx + 1, ny + 1)): SOURCE per step
+    in the disc of radius RADIUS at ``location`` (in the book's 32 × 40 units)."""
+    from .solvers.incompressible2d import cylinder
+
+    scale = flow.nx / 32.0
+    disc = cylinder(flow.nx, flow.ny, (location[0] * scale, location[1] * scale), RADIUS * scale)
+    c = np.zeros((steps, 1, *flow.control_shape))
+    c[:, 0, 2, : flow.nx, : flow.ny] = SOURCE / flow.dt * disc
+    return c
+
+
+def cells(size: str, seeds: int | None) -> list[dict]:
+    """One optimisation per optimiser and inflow location (``seeds`` does not apply: the
+    problem is deterministic)."""
+    spec = SIZES[size]
+    return [{"id": f"{opt}-loc{k}", "optimiser": opt, "location": list(LOCATIONS[k]), **spec}
+            for k in range(spec["locations"]) for opt in OPTIMISERS]
+
+
+def objective(flow: Any, steps: int, ctrl: np.ndarray, target: np.ndarray
+              ) -> tuple[Callable[[np.ndarray], tuple[float, np.ndarray]], np.ndarray, dict]:
+    """The loss ½ Σ (ρ_n − ρ*)² of the free velocity entries z of u_0 (the smoke starting
+    empty), with its gradient from one reverse sweep; the mask of those entries in the state
+    (u at the vertical faces, v at the horizontal ones); and a dict the function keeps its
+    last point and loss in (``z``, ``loss``)."""
+    nx, ny = flow.nx, flow.ny
+    mask = np.zeros(flow.state_shape(1), dtype=bool)
+    mask[0, 0, :, :ny] = True
+    mask[0, 1, :nx, :] = True
+    last: dict[str, Any] = {}
+
+    def loss_and_grad(z: np.ndarray) -> tuple[float, np.ndarray]:
+        u0 = np.zeros(mask.shape)
+        u0[mask] = z
+        traj = flow.rollout(u0, steps, ctrl, keep="all")
+        cot = np.zeros_like(u0)
+        cot[0, 2] = traj[-1, 0, 2] - target
+        g = flow.vjp(u0, steps, {steps: cot}, ctrl, trajectory=traj)
+        last.update(z=z.copy(), loss=0.5 * float(np.sum(cot * cot)))
+        return last["loss"], g.state[mask]
+
+    return loss_and_grad, mask, last
+
+
+def run_cell(cell: dict, run_dir: Path) -> dict:
+    """One optimisation of u_0; the loss after each iteration and the seconds it took."""
+    from scipy.optimize import minimize
+
+    flow = scene(cell["nx"], cell["ny"])
+    n, nx, ny = cell["steps"], flow.nx, flow.ny
+    rest = np.zeros(flow.state_shape(1))
+    target = flow.rollout(rest, n, sources(flow, LOCATIONS[-1], n))[0, 2]
+    ctrl = sources(flow, tuple(cell["location"]), n)
+    loss_and_grad, mask, last = objective(flow, n, ctrl, target)
+    top = flow.h / flow.dt  # Courant number 1
+
+    z = np.zeros(int(mask.sum()))
+    loss_and_grad(z)  # compile the kernels (cached afterwards) outside the timing
+    history: list[dict] = []
+    start = time.perf_counter()
+
+    def record(loss: float) -> None:
+        history.append({"iteration": len(history), "loss": loss,
+                        "seconds": time.perf_counter() - start})
+
+    loss, grad = loss_and_grad(z)
+    record(loss)
+    if cell["optimiser"] == "gd":
+        for _ in range(cell["iterations"]):
+            z = np.clip(z - GD_RATE * grad, -top, top)
+            loss, grad = loss_and_grad(z)
+            record(loss)
+    else:
+        best = {"z": z}
+
+        def keep(zk: np.ndarray) -> None:
+            # the accepted point is the last one evaluated, except after a backtracking search
+            best["z"] = zk.copy()
+            record(last["loss"] if np.array_equal(last["z"], zk) else loss_and_grad(zk)[0])
+
+        minimize(loss_and_grad, z, jac=True, method="L-BFGS-B", bounds=[(-top, top)] * z.size,
+                 callback=keep, options={"maxiter": cell["iterations"], "gtol": 0.0,
+                                         "ftol": 0.0})
+        z = best["z"]
+    u0 = rest.copy()
+    u0[mask] = z
+    reached = flow.rollout(u0, n, ctrl)[0, 2]
+    return {"history": history, "initial_loss": history[0]["loss"],
+            "final_loss": history[-1]["loss"], "iterations": len(history) - 1,
+            "seconds": history[-1]["seconds"], "reduction": history[-1]["loss"]
+            / history[0]["loss"], "fields": {
+                "from_rest": flow.rollout(rest, n, ctrl)[0, 2, :nx, :ny].tolist(),
+                "target": target[:nx, :ny].tolist(), "reached": reached[:nx, :ny].tolist(),
+                "speed": _speed(u0[0], nx, ny).tolist()}}
+
+
+def _speed(u: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """|u| at the cell centres of a staggered velocity (2, nx + 1, ny + 1)."""
+    uc = 0.5 * (u[0, :-1, :ny] + u[0, 1:, :ny])
+    vc = 0.5 * (u[1, :nx, :-1] + u[1, :nx, 1:])
+    return np.hypot(uc, vc)
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown: per optimiser and location the loss at the start and the end, and the time."""
+    lines = ["| optimiser | inflow location | loss from rest | final loss | final / start "
+             "| iterations | seconds | seconds per iteration |", "|---" * 8 + "|"]
+    for r in sorted(rows, key=lambda r: (r["optimiser"], r["location"])):
+        its = max(1, r["iterations"])
+        lines.append(f"| {r['optimiser']} | ({r['location'][0]:g}, {r['location'][1]:g}) | "
+                     f"{r['initial_loss']:.4g} | {r['final_loss']:.4g} | {r['reduction']:.3g} | "
+                     f"{r['iterations']} | {r['seconds']:.2f} | {r['seconds'] / its:.3f} |")
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], out: Path) -> None:
+    """``loss.png``: loss against iteration and against wall seconds, one line per cell;
+    ``fields.png``: per location the smoke from rest, the target, the smoke reached from the
+    optimised u_0 (by L-BFGS-B where it ran, else gradient descent) and that u_0's speed."""
+    from .files import pyplot, save_figure
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    styles = {"gd": "-", "lbfgs": "--"}
+    names = {"gd": "gradient descent", "lbfgs": "L-BFGS-B"}
+    locations = sorted({tuple(r["location"]) for r in rows})
+    for r in sorted(rows, key=lambda r: r["id"]):
+        h = r["history"]
+        colour = f"C{locations.index(tuple(r['location'])) % 10}"
+        label = f"{names[r['optimiser']]}, inflow ({r['location'][0]:g}, {r['location'][1]:g})"
+        for ax, x in zip(axes, ("iteration", "seconds")):
+            ax.plot([p[x] for p in h], [p["loss"] for p in h], styles[r["optimiser"]],
+                    color=colour, label=label)
+    for ax, x in zip(axes, ("iteration", "wall seconds")):
+        ax.set(yscale="log", xlabel=x, ylabel="loss ½ Σ (ρ_n − ρ*)²")
+    axes[0].legend(fontsize=7)
+    axes[0].set_title("smoke to the target: loss per iteration")
+    axes[1].set_title("loss against wall time (one core)")
+    save_figure(fig, out / "loss.png", dpi=120)
+
+    shown = {}
+    for r in sorted(rows, key=lambda r: r["optimiser"] != "lbfgs"):
+        shown.setdefault(tuple(r["location"]), r)
+    fig, axes = plt.subplots(len(shown), 4, figsize=(12, 3.6 * len(shown)), squeeze=False)
+    for row_axes, (loc, r) in zip(axes, sorted(shown.items())):
+        f = r["fields"]
+        lim = max(np.max(f["from_rest"]), np.max(f["target"]), np.max(f["reached"]))
+        panels = ((f["from_rest"], f"smoke at step {r['steps']} from rest, inflow {loc}",
+                   "density ρ", lim),
+                  (f["target"], "target ρ* (inflow (16, 5))", "density ρ", lim),
+                  (f["reached"], f"from the optimised u_0 ({names[r['optimiser']]})",
+                   "density ρ", lim),
+                  (f["speed"], "optimised u_0: speed", "|u_0| (cells per step)", None))
+        for ax, (data, title, label, vmax) in zip(row_axes, panels):
+            im = ax.imshow(np.asarray(data).T, origin="lower", cmap="viridis", vmin=0,
+                           vmax=vmax)
+            ax.set(title=title, xlabel="cell x", ylabel="cell y")
+            ax.title.set_fontsize(8)
+            fig.colorbar(im, ax=ax, label=label)
+    save_figure(fig, out / "fields.png", dpi=110)
+
+
+def report(rows: list[dict], out: Path) -> str:
+    """``OUT/smoke.md``, ``OUT/smoke.json``, ``OUT/loss.png`` and ``OUT/fields.png``."""
+    from .files import write_json, write_text
+
+    r = rows[0]
+    text = table(rows)
+    about = (
+        "The smoke of the physics-based deep learning book's \"Differentiable Fluid "
+        "Simulations\", reached by optimising the initial velocity with the adjoint of "
+        f"`incompressible2d-sl` (`adjointsim study smoke`): a closed box of {r['nx']} × "
+        f"{r['ny']} cells, no viscosity, {r['steps']} steps, smoke {SOURCE} per step in a disc "
+        f"of radius {RADIUS:g} (book units), buoyancy {BUOYANCY}; the target is the smoke of the "
+        f"inflow at (16, 5). Gradient descent steps {GD_RATE} × the gradient; L-BFGS-B is "
+        "scipy's; both keep |u_0| ≤ h/Δt. Seconds are wall seconds on one core.\n\n")
+    write_text(out / "smoke.md", about + text + "\n")
+    write_json(out / "smoke.json", [{k: v for k, v in r.items() if k != "fields"}
+                                    for r in rows])
+    plot(rows, out)
+    return text + f"\nplots: {out / 'loss.png'}, {out / 'fields.png'}"
+
+
+#: what every finished row holds besides its cell's keys
+ROW_KEYS = {"history": list, "initial_loss": float, "final_loss": float, "iterations": int,
+            "seconds": float, "reduction": float, "fields": dict}
+
+register_study(Study("smoke", tuple(SIZES), cells, run_cell, report, row_keys=ROW_KEYS))
