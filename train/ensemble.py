@@ -395,9 +395,20 @@ class StepperEnsemble:
         return self.group[0].done()
 
     def update(self) -> bool:
+        self._evaluate()
         stage, wins = [p.begin() for p in self.group][0]
         self._update(stage, wins, list(range(len(self.group))))
+        self._evaluate()
         return self.group[0].boundary()
+
+    def _evaluate(self) -> None:
+        """Each member's test error where its run's cadence (``eval_every``) asks for it, from
+        its weights brought back from the stack."""
+        if any(p.evaluation_due() for p in self.group):
+            self.sync()
+            for p in self.group:
+                if p.evaluation_due():
+                    p.evaluate_curve()
 
     def sync(self) -> None:
         """Each member's weights, Adam state and rate into its own model and optimiser, as its

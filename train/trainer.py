@@ -3,8 +3,8 @@ coarse solver with ONE, NOG or WIG, as a problem on the run engine.
 
 The engine (:mod:`adjointsim.engine`) owns the run directory: the claim (``resume``,
 ``overwrite``), ``config.json``, ``checkpoint.pt`` (every ``checkpoint_every`` iterations, at
-least every 30 s, on Ctrl-C and at the end), ``history.csv``, the progress bar and
-``result.json``. This module holds what is this problem's own: the config and its accepted
+least every 30 s, on Ctrl-C and at the end), ``history.csv`` (and ``curve.csv``, the test error
+every ``eval_every`` updates), the progress bar and ``result.json``. This module holds what is this problem's own: the config and its accepted
 values (:data:`ACCEPTED`), the model, the plan of curriculum stages, one update (with the
 gradient-spike cutoff and the rollback guard), its state, history rows, result and plot
 (``training.png``). A run continued with ``resume`` picks up at the same stage, epoch and batch,
@@ -36,7 +36,7 @@ from adjointsim.run import SEEDS, Config, Interval, check_memory, plot_history
 
 from . import data as datamod
 from .checkpoint import STORE, load_checkpoint, restore
-from .evaluate import BLOW_UPS
+from .evaluate import BLOW_UPS, TEST_SPLITS, relative_error, rollout
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
 from .threads import use_threads
@@ -82,6 +82,8 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     "seed": SEEDS,
     "threads": Interval(1),
     "max_iterations": Interval(0),
+    "eval_every": Interval(0),
+    "eval_horizon": Interval(1),
     "scene": "the dataset's scene keys (train takes the scene from its dataset)",
 }
 
@@ -124,6 +126,12 @@ class TrainConfig(Config):
     #: stop after this many iterations in total, unfinished (for tests and interrupted-run
     #: drills): continue with resume
     max_iterations: int = 0
+    #: updates between two measurements of the test error along the way (``curve.csv``: the
+    #: relative error over ``eval_horizon`` steps, the metric of the studies' tables, at
+    #: update 0, every ``eval_every`` updates and at the end); 0: none. Neither key changes
+    #: the training, so a run may be continued with other values
+    eval_every: int = 0
+    eval_horizon: int = 12
     #: the solver's scene: the dataset's (recorded here when the run starts); a key given
     #: must agree with it
     scene: dict = field(default_factory=dict)
@@ -194,12 +202,25 @@ class TrainData:
     frames: torch.Tensor
     params: torch.Tensor
     conditions: torch.Tensor
+    #: the test splits, for the test error along the way (``eval_every``)
+    tests: dict = field(default_factory=dict)
 
     @classmethod
     def of(cls, dataset: datamod.Dataset, dtype: str) -> TrainData:
         split = dataset.splits["train"]
         return cls(split, torch.from_numpy(split.trajectories).to(DTYPES[dtype]),
-                   torch.from_numpy(split.params), torch.from_numpy(split.conditions))
+                   torch.from_numpy(split.params), torch.from_numpy(split.conditions),
+                   {name: dataset.splits[name] for name in TEST_SPLITS})
+
+    def test_error(self, model: NeuralStepper, horizon: int, dtype: str) -> float:
+        """The relative error over ``horizon`` steps from every test trajectory's first frame,
+        mean over the rollouts of both test splits: the ``rel_error`` of
+        :func:`adjointsim.train.evaluate.evaluate` (which rolls out further, step by step the
+        same), without its long rollouts and plots."""
+        errors = [relative_error(rollout(model, split, horizon, DTYPES[dtype]),
+                                 split.trajectories[:, :horizon + 1].astype(np.float64))
+                  for split in self.tests.values()]
+        return float(np.mean(np.concatenate(errors)))
 
     def plan_of(self, cfg: TrainConfig) -> list[dict]:
         """``cfg``'s plan on this split (an ensemble's members differ in their rates)."""
@@ -252,6 +273,8 @@ def prepare(cfgs: list[TrainConfig]) -> tuple[list[TrainConfig], TrainData]:
 #: updates per window of the rollback guard
 ROLLBACK_WINDOW = 100
 HISTORY_FIELDS = ("iteration", "stage", "m", "lr", "loss", "skipped")
+#: the test error along the way (``eval_every``), one row per evaluation
+CURVE_FIELDS = ("updates", "horizon", "rel_error")
 
 
 class StepperRun(engine.Problem):
@@ -259,7 +282,7 @@ class StepperRun(engine.Problem):
     :meth:`spike`, :meth:`record`, :meth:`guard`, :meth:`boundary`) also make an ensemble's
     update (:class:`adjointsim.train.ensemble.StepperEnsemble`)."""
 
-    RESUMABLE = ("out", "threads", "max_iterations")
+    RESUMABLE = ("out", "threads", "max_iterations", "eval_every", "eval_horizon")
     ADDED = ("scene",)
     HISTORIES = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("training.png", "results.json", "metrics.json", "rollout-*.png")
@@ -272,6 +295,8 @@ class StepperRun(engine.Problem):
         self.config: TrainConfig = config
         self.data = data
         self.model: NeuralStepper | None = None
+        if config.eval_every:  # this run's files: the test error's history besides the loss's
+            self.HISTORIES = {**self.HISTORIES, "curve.csv": CURVE_FIELDS}
 
     def describe(self) -> str:
         return f"train {self.config.mode}"
@@ -286,6 +311,7 @@ class StepperRun(engine.Problem):
         #: the weights and optimiser state at state["best"], for a rollback
         self.kept: dict | None = None
         self.history: list[dict] = []
+        self.curve: list[dict] = []
         self.wins: tuple[int, np.ndarray] | None = None
 
     # how far
@@ -300,14 +326,32 @@ class StepperRun(engine.Problem):
         return bool(cap) and cap <= self.position() < self.total()
 
     def boundary(self) -> bool:
-        """Whether the update just made ends a checkpoint interval."""
-        return self.state["total"] % self.config.checkpoint_every == 0
+        """Whether the update just made ends a checkpoint interval, or was followed by an
+        evaluation (its row is kept at once)."""
+        evaluated = bool(self.curve) and self.curve[-1]["updates"] == self.state["total"]
+        return self.state["total"] % self.config.checkpoint_every == 0 or evaluated
+
+    def evaluation_due(self) -> bool:
+        """Whether the test error is due at this point (``eval_every``: update 0, every
+        ``eval_every`` updates, the end) and not yet measured."""
+        every, total = self.config.eval_every, self.state["total"]
+        return bool(every) and (total % every == 0 or total == self.total()) and not (
+            self.curve and self.curve[-1]["updates"] == total)
+
+    def evaluate_curve(self) -> None:
+        """The curve's row at this point, from the model's current weights."""
+        cfg = self.config
+        self.curve.append({"updates": self.state["total"], "horizon": cfg.eval_horizon,
+                           "rel_error": self.data.test_error(self.model, cfg.eval_horizon,
+                                                             cfg.dtype)})
 
     def postfix(self) -> dict[str, Any]:
         return {"loss": f"{self.history[-1]['loss']:.3e}", "m": self.history[-1]["m"]}
 
     # one update
     def update(self) -> bool:
+        if self.evaluation_due():  # the untrained model (update 0)
+            self.evaluate_curve()
         stage, wins = self.begin()
         model, optimizer = self.model, self.optimizer
         frames, params, conditions, lr = self.batch(wins)
@@ -330,6 +374,8 @@ class StepperRun(engine.Problem):
                 optimizer.step()
         if self.record(stage, lr, loss.item(), skipped):
             self.guard()
+        if self.evaluation_due():
+            self.evaluate_curve()
         return self.boundary()
 
     def begin(self) -> tuple[dict, np.ndarray]:
@@ -412,10 +458,12 @@ class StepperRun(engine.Problem):
         self.state |= state["progress"]
 
     def histories(self) -> dict[str, list[dict]]:
-        return {"history.csv": self.history}
+        return {"history.csv": self.history, "curve.csv": self.curve}
 
     def load_histories(self, histories: dict[str, list[dict]]) -> None:
         self.history = list(histories["history.csv"])
+        # a run continued with eval_every set where it had none starts its curve there
+        self.curve = list(histories.get("curve.csv", []))
 
     # the end
     def finish(self) -> dict:
