@@ -4,13 +4,13 @@ coarse solver with ONE, NOG or WIG, as a problem on the run engine.
 The engine (:mod:`adjointsim.engine`) owns the run directory: the claim (``resume``,
 ``overwrite``), ``config.json``, ``checkpoint.pt`` (every ``checkpoint_every`` iterations, at
 least every 30 s, on Ctrl-C and at the end), ``history.csv`` (and ``curve.csv``, the test error
-every ``eval_every`` updates), the progress bar and ``result.json``. This module holds what is this problem's own: the config and its accepted
-values (:data:`ACCEPTED`), the model, the plan of curriculum stages, one update (with the
-gradient-spike cutoff and the rollback guard), its state, history rows, result and plot
-(``training.png``). A run continued with ``resume`` picks up at the same stage, epoch and batch,
-with the optimiser, the spike statistics and the data order restored, so it ends with the same
-weights as an uninterrupted run. ``max_iterations`` stops a run early, unfinished and
-resumable.
+every ``eval_every`` updates), the progress bar and ``result.json``. This module holds what is
+this problem's own: the config and its accepted values (:data:`ACCEPTED`), the model, the plan
+of curriculum stages, one update (with the gradient-spike cutoff and the rollback guard), its
+state, history rows, result and plot (``training.png``). A run continued with ``resume`` picks
+up at the same stage, epoch and batch, with the optimiser, the spike statistics and the data
+order restored, so it ends with the same weights as an uninterrupted run. ``max_iterations``
+stops a run early, unfinished and resumable.
 
 The solver's scene comes from the dataset (``adjointsim data --scene``); the ``scene`` key
 may repeat it and is refused where it disagrees.
