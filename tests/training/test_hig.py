@@ -456,7 +456,7 @@ def test_cli_help_lists_the_choices(capsys):
         main(["hig", "--help"])
     assert stop.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    assert set(PROBLEMS.names()) == {"oscillators", "quantum", "poisson", "chain"}
+    assert set(PROBLEMS.names()) == {"oscillators", "quantum", "poisson", "poisson64", "chain"}
     for part in ("{" + ",".join(PROBLEMS.names()) + "}", "{adam,gn,hig}", "{tiny,quick,full}",
                  "--time-budget", "--max-updates", "--resume", "--overwrite", "--config",
                  "--seed", "--threads", "--no-progress", "chain 100", "--scene KEY=VALUE"):

@@ -40,6 +40,10 @@ SIZES = {
              "budget": {"oscillators": 600.0, "quantum": 600.0, "poisson": 600.0,
                         "chain": 100.0},
              "marks": (1.0, 10.0, 100.0, 300.0, 600.0), "data": "full"},
+    # Poisson with HIG and GN at the paper's batch of 64, an hour of update time each: about
+    # 10 hours of one core for the 9 cells (seed 0 of each optimizer first)
+    "paper-batch": {"problems": ("poisson64",), "seeds": 3, "budget": {"poisson64": 3600.0},
+                    "marks": (1.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3600.0), "data": "full"},
 }
 
 
