@@ -19,7 +19,12 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
   2 cores (the paper runs 1000);
 * ``paper``: the paper's budget at the hardest cart-pole level (4 poles): 1000 epochs of the
   paper's settings, modes R, M and C and R with norm clipping, 3 seeds;
-* ``paper-guidance``: the same for the guidance task at control weight 0.001, at 300 epochs.
+* ``paper-guidance``: the same for the guidance task at control weight 0.001, at 300 epochs;
+* ``budget``: the paper's 1000 epochs for the other two tasks at their hardest levels
+  (guidance at control weight 0.001, quantum at target 5), modes R, M and C and R with norm
+  clipping, 3 seeds: hours per ensemble on one core, over several sittings (each run resumes
+  from its checkpoint; ``python -m adjointsim.train.studies.stablebptt OUT --size budget``
+  tabulates and draws the epochs reached so far).
 
 Cells that differ only in the seed and the clipping train together as one ensemble
 (:func:`adjointsim.train.ensemble.train_ensemble`): one task of the runner per ensemble, each
@@ -28,12 +33,13 @@ member in its own run directory, equal to its separate run.
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
 
 from adjointsim import engine
-from adjointsim.files import pyplot, save_figure, write_text
+from adjointsim.files import pyplot, save_figure, write_json, write_text
 from adjointsim.run import plot_history, read_history
 from adjointsim.runner import Study, register_study
 
@@ -65,6 +71,10 @@ SIZES = {
     "paper-guidance": {"tasks": {"guidance": (0.001,)}, "modes": ("R", "M", "C"),
                        "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
                        "test": 256, "batch": 8, "epochs": (300, 300)},
+    # guidance first: an ensemble of it costs about a tenth of a quantum one per epoch
+    "budget": {"tasks": {"guidance": (0.001,), "quantum": (5,)}, "modes": ("R", "M", "C"),
+               "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
+               "test": 256, "batch": 8, "epochs": (1000, 1000)},
 }
 
 
@@ -132,6 +142,23 @@ def _row(cell: dict, cfg: ControlConfig, result: dict, run_dir: Path) -> dict:
             "untrained_test_loss": untrained,
             "seconds": result["seconds"], "test_history": [h["test_loss"] for h in history],
             "config": cfg.as_dict()}
+
+
+def collect(out: Path, size: str, seeds: int | None = None) -> list[dict]:
+    """The rows of the cells under the study directory ``out`` that have trained an epoch,
+    finished or not: ``epochs`` is the epochs reached, ``test_loss`` and ``train_loss`` those
+    of the last (what a stopped or running study has reached)."""
+    rows = []
+    for cell in cells(size, seeds):
+        path = Path(out) / cell["id"] / "history.csv"
+        history = read_history(path) if path.exists() else []
+        if history:
+            rows.append({**cell, "epochs": int(history[-1]["epoch"]),
+                         "epochs_planned": cell["epochs"],
+                         "test_loss": history[-1]["test_loss"],
+                         "train_loss": history[-1]["train_loss"],
+                         "test_history": [h["test_loss"] for h in history]})
+    return rows
 
 
 def table(rows: list[dict]) -> str:
@@ -263,6 +290,23 @@ def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
     save_figure(fig, path, dpi=110)
 
 
+def main(argv: list[str] | None = None) -> None:
+    """Tabulate and draw what a study directory holds so far (a running or stopped study's
+    epochs too): ``table.txt``, the curves and ``rows.json``."""
+    p = argparse.ArgumentParser(prog="python -m adjointsim.train.studies.stablebptt",
+                                description=main.__doc__)
+    p.add_argument("out", type=Path, help="the study's directory (its --out)")
+    p.add_argument("--size", required=True, choices=tuple(SIZES))
+    p.add_argument("--to", type=Path, help="where to write the files (default: OUT)")
+    args = p.parse_args(argv)
+    rows = collect(args.out, args.size)
+    if not rows:
+        raise SystemExit(f"{args.out} holds no epoch of the {args.size} size yet")
+    to = args.to or args.out
+    write_json(Path(to) / "rows.json", rows)
+    print(report(rows, to))
+
+
 register_study(Study(
     name="stablebptt",
     sizes=tuple(SIZES),
@@ -272,3 +316,7 @@ register_study(Study(
     pack=("seed", "clip"),
     run_group=run_group,
 ))
+
+
+if __name__ == "__main__":
+    main()
