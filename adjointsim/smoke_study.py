@@ -44,7 +44,7 @@ SIZES: dict[str, dict[str, Any]] = {
     # the book's scene at half the resolution and half the steps, for tests
     "tiny": {"nx": 16, "ny": 20, "steps": 10, "locations": 1, "iterations": 5},
     "quick": {"nx": 32, "ny": 40, "steps": 20, "locations": 3, "iterations": 100},
-    "full": {"nx": 32, "ny": 40, "steps": 20, "locations": 3, "iterations": 400},
+    "full": {"nx": 32, "ny": 40, "steps": 20, "locations": 3, "iterations": 500},
 }
 #: the book's smoke source per step inside its disc, disc radius (cells) and buoyancy
 SOURCE, RADIUS, BUOYANCY = 0.2, 3.0, 0.5
@@ -203,21 +203,21 @@ def plot(rows: list[dict], out: Path) -> None:
     shown = {}
     for r in sorted(rows, key=lambda r: r["optimiser"] != "lbfgs"):
         shown.setdefault(tuple(r["location"]), r)
-    fig, axes = plt.subplots(len(shown), 4, figsize=(12, 3.6 * len(shown)), squeeze=False)
+    fig, axes = plt.subplots(len(shown), 4, figsize=(14, 3.8 * len(shown)), squeeze=False)
     for row_axes, (loc, r) in zip(axes, sorted(shown.items())):
         f = r["fields"]
         lim = max(np.max(f["from_rest"]), np.max(f["target"]), np.max(f["reached"]))
-        panels = ((f["from_rest"], f"smoke at step {r['steps']} from rest, inflow {loc}",
-                   "density ρ", lim),
-                  (f["target"], "target ρ* (inflow (16, 5))", "density ρ", lim),
-                  (f["reached"], f"from the optimised u_0 ({names[r['optimiser']]})",
-                   "density ρ", lim),
-                  (f["speed"], "optimised u_0: speed", "|u_0| (cells per step)", None))
+        at = f"({loc[0]:g}, {loc[1]:g})"
+        panels = ((f["from_rest"], f"inflow {at}, u_0 = 0: step {r['steps']}", "density ρ", lim),
+                  (f["target"], "target ρ*: inflow (16, 5)", "density ρ", lim),
+                  (f["reached"], f"inflow {at}, optimised u_0", "density ρ", lim),
+                  (f["speed"], f"optimised u_0 ({names[r['optimiser']]})",
+                   "|u_0| (cells per step)", None))
         for ax, (data, title, label, vmax) in zip(row_axes, panels):
             im = ax.imshow(np.asarray(data).T, origin="lower", cmap="viridis", vmin=0,
                            vmax=vmax)
             ax.set(title=title, xlabel="cell x", ylabel="cell y")
-            ax.title.set_fontsize(8)
+            ax.title.set_fontsize(9)
             fig.colorbar(im, ax=ax, label=label)
     save_figure(fig, out / "fields.png", dpi=110)
 
