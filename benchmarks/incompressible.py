@@ -1,11 +1,13 @@
 """Speed of the staggered-grid incompressible Navier–Stokes solver: forward and gradient.
 
     python benchmarks/incompressible.py [--n 32 64] [--batch 1] [--steps 50] [--repeats 3]
-                                        [--checkpoint 8] [--cpu] [--json PATH]
+                                        [--checkpoint 8] [--viscosity explicit] [--cpu]
+                                        [--json PATH]
 
 Scene: ``incompressible2d-sl``'s benchmark scene at size n, the wake of a cylinder in a channel
 of 2n × n cells (inflow left, outflow right, free-slip walls) with an advected smoke density and
-buoyancy, float64, one solver thread, started from the flow after 20 steps. Per row, median
+buoyancy, float64, one solver thread, started from the flow after 20 steps (``--viscosity
+implicit``: the same scene with backward-Euler viscosity; key ``viscosity``). Per row, median
 wall time (``--cpu``: the thread's CPU time, which other processes on a shared machine inflate
 much less) over the repeats of
   forward_s               rollout(u0, steps)
@@ -59,8 +61,9 @@ def peak_mib(fn) -> float:
         tracemalloc.stop()
 
 
-def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, clock) -> dict:
-    stepper = get(NAME).benchmark_scene(n)
+def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, viscosity: str,
+        clock) -> dict:
+    stepper = get(NAME).benchmark_scene(n, viscosity=viscosity)
     rng = np.random.default_rng(0)
     u0 = stepper.rollout(np.zeros(stepper.state_shape(batch)), 20)
     u0[:, 2] = stepper.random_state(rng, batch)[:, 2]
@@ -71,6 +74,7 @@ def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, clock) ->
 
     return {
         "solver": NAME, "nx": stepper.nx, "ny": stepper.ny, "batch": batch, "steps": steps,
+        "viscosity": viscosity,
         "forward_s": median_time(lambda: stepper.rollout(u0, steps), repeats, clock),
         "gradient_s": median_time(lambda: gradient(steps, None), repeats, clock),
         "gradient_checkpoint_s": median_time(lambda: gradient(steps, checkpoint), repeats, clock),
@@ -90,6 +94,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--checkpoint", type=int, default=8)
+    parser.add_argument("--viscosity", choices=("explicit", "implicit"), default="explicit")
     parser.add_argument("--cpu", action="store_true", help="thread CPU time instead of wall time")
     parser.add_argument("--json", type=Path, help="write the rows here")
     args = parser.parse_args()
@@ -101,10 +106,11 @@ def main() -> None:
     rows = []
     with parallel.using_threads(1):
         for n in args.n:
-            r = row(n, args.batch, args.steps, args.repeats, args.checkpoint,
+            r = row(n, args.batch, args.steps, args.repeats, args.checkpoint, args.viscosity,
                     time.thread_time if args.cpu else time.perf_counter)
             rows.append(r)
-            print(f"{r['solver']} {r['nx']}×{r['ny']} B={r['batch']} {r['steps']} steps: "
+            print(f"{r['solver']} {r['nx']}×{r['ny']} B={r['batch']} {r['steps']} steps, "
+                  f"{r['viscosity']} viscosity: "
                   f"forward {r['forward_s']:.3f} s, gradient {r['gradient_s']:.3f} s "
                   f"({r['gradient_s'] / r['forward_s']:.2f}× forward), checkpointed "
                   f"{r['gradient_checkpoint_s']:.3f} s, peak {r['peak_mib']:.1f} MiB "

@@ -21,8 +21,11 @@ Discrete (Chorin's splitting, one step from u_k to u_{k+1}; c = Δt/h):
     ``advection="maccormack"`` (the book's ``advect.mac_cormack``) the result φ̂ is
     corrected to φ̂ + ½ (φ − φ̂(x + Δt u(x))) and clamped to the four values of φ around the
     backtraced point;
- 2. explicit viscosity: u += ν Δt Δ_h u on the free faces (5-point Laplacian, same ghost
-    layer; an outflow face mirrors itself across its side);
+ 2. viscosity, explicit (the default): u += ν Δt Δ_h u on the free faces (5-point Laplacian,
+    same ghost layer; an outflow face mirrors itself across its side); or, with
+    ``viscosity="implicit"``, backward Euler: u ← x, the solution of x − ν Δt Δ_h x = u on the
+    free faces, the same Laplacian with the same boundary values; I − kd A (kd = ν Δt/h², A
+    the Laplacian's matrix on the free faces, symmetric) is factorised once per geometry and ν;
  3. forces: u += Δt f, v += Δt (f_y + b ρ̄) (ρ̄ the advected density averaged onto the face),
     ρ += Δt s;
  4. projection: M φ = −(D u) on the fluid cells, u −= G φ on the free faces, where D is the
@@ -40,17 +43,23 @@ spare: the step writes zero into them and ignores them. Controls have the state'
 step and act on the free faces and fluid cells only.
 
 Adjoint: every stage above is reversed in the opposite order; the projection's adjoint is the
-transposed solve with the same factors (M is symmetric). The bilinear sample's derivative in its
-sample point is that of the cell it falls in (one-sided on a cell edge, zero where clamped), so
-the discrete adjoint matches the tangent of the code everywhere the sample points stay off cell
-edges (the gradients are those of a piecewise-smooth map). MacCormack's clamp adds switches
-wherever a corrected value meets a bound: its adjoint is exact too (the dot-product test holds
-to round-off), but finite differences and the Taylor test see those switches at any step size
-a long rollout allows, so the gradient checker, which runs the semi-Lagrangian default, cannot
-confirm it. The adjoint recomputes each step's intermediate fields from its input state, not
-its pressure solve.
+transposed solve with the same factors (M is symmetric), and so is the implicit viscous step's.
+Its solution x has the derivative (I − kd A)⁻¹ (Δt/h²) h² Δ_h x in ν (h² Δ_h x = A x + b, b the
+boundary values' part), which gives ν the cotangent (Δt/h²) ⟨λ, h² Δ_h x⟩, λ = (I − kd A)⁻¹ x̄
+the adjoint solution. The bilinear sample's derivative in its sample point is that of the cell
+it falls in (one-sided on a cell edge, zero where clamped), so the discrete adjoint matches the
+tangent of the code everywhere the sample points stay off cell edges (the gradients are those
+of a piecewise-smooth map). MacCormack's clamp adds switches wherever a corrected value meets a
+bound: its adjoint is exact too (the dot-product test holds to round-off), but finite
+differences and the Taylor test see those switches at any step size a long rollout allows, so
+the gradient checker, which runs the semi-Lagrangian default, cannot confirm it. The
+semi-Lagrangian adjoint needs nothing of the forward step but its padded input: the velocity's
+samples are fixed stencils and each backtrace is recomputed where its cotangent is scattered,
+which also gives back the advected fields that the parameters' cotangents need. MacCormack's
+adjoint recomputes the step's advection first (its clamp reads it); an implicit viscous step
+with parameter cotangents solves its forward system once more.
 
-Limits, checked: ν Δt/h² ≤ ¼ (explicit viscosity) and a Courant number (speed · Δt/h) of at
+Limits, checked: ν Δt/h² ≤ ¼ (explicit viscosity only) and a Courant number (speed · Δt/h) of at
 most 1 for the lid, the inflow and the initial state: a backtrace then crosses at most one cell
 and cannot pass through a wall or an obstacle one cell thick.
 """
@@ -77,6 +86,7 @@ FREE, FIXED, COPY = 0, 1, 2
 PROFILES = ("uniform", "parabolic")
 OBSTACLES = ("cylinder", "box")
 ADVECTIONS = ("semi-lagrangian", "maccormack")
+VISCOSITIES = ("explicit", "implicit")
 #: largest Courant number (speed · Δt / h) accepted
 MAX_COURANT = 1.0
 #: largest ν Δt / h² of the explicit viscosity (the 5-point Laplacian's limit)
@@ -115,16 +125,19 @@ def _sample(q, a, b, geo):
 
 @njit(cache=True, nogil=True)
 def _sample_adjoint(q, qbar, a, b, geo, g):
-    """Scatter the cotangent ``g`` of a sample into ``qbar``; return the cotangents of a, b."""
+    """Scatter the cotangent ``g`` of a sample into ``qbar``; return the sample (as
+    :func:`_sample` computes it) and the cotangents of a, b."""
     i, fa, da = _coord(a, q.shape[0], geo[0], geo[1], geo[2])
     j, fb, db = _coord(b, q.shape[1], geo[3], geo[4], geo[5])
+    value = ((1 - fa) * ((1 - fb) * q[i, j] + fb * q[i, j + 1])
+             + fa * ((1 - fb) * q[i + 1, j] + fb * q[i + 1, j + 1]))
     qbar[i, j] += (1 - fa) * (1 - fb) * g
     qbar[i, j + 1] += (1 - fa) * fb * g
     qbar[i + 1, j] += fa * (1 - fb) * g
     qbar[i + 1, j + 1] += fa * fb * g
     abar = da * g * ((1 - fb) * (q[i + 1, j] - q[i, j]) + fb * (q[i + 1, j + 1] - q[i, j + 1]))
     bbar = db * g * ((1 - fa) * (q[i, j + 1] - q[i, j]) + fa * (q[i + 1, j + 1] - q[i + 1, j]))
-    return abar, bbar
+    return value, abar, bbar
 
 
 # ------------------------------------------------------------------ ghost layers
@@ -294,43 +307,80 @@ def _begin(src, u, v, d, ukind, vkind, uprof, vprof, fluid, speed, has_d):
 
 # A field's samples sit at (i + ox, j + oy) in cell widths (u: (0, ½), v: (½, 0), the density:
 # (½, ½)), and its padded array holds sample (i, j) at index coordinates (i + ox, j + oy) + the
-# ghost layer's offset, which for all three fields is (ox, oy) again.
-@njit(cache=True, nogil=True)
-def _velocity(x, y, big_u, big_v, gu, gv):
-    """The velocity at (x, y) in cell widths, from the padded components."""
-    return _sample(big_u, x, y + 0.5, gu), _sample(big_v, x + 0.5, y, gv)
+# ghost layer's offset, which for all three fields is (ox, oy) again. The velocity's own sample
+# points are faces, so its bilinear samples at these points are a face value or the mean of two
+# or four face values: fixed stencils, which the kernels below apply directly.
+#: sample points: u faces, v faces, cell centres (the density)
+AT_U, AT_V, AT_CELL = 0, 1, 2
 
 
 @njit(cache=True, nogil=True)
-def _velocity_adjoint(x, y, big_u, big_v, bu, bv, gu, gv, gx, gy):
-    _sample_adjoint(big_u, bu, x, y + 0.5, gu, gx)
-    _sample_adjoint(big_v, bv, x + 0.5, y, gv, gy)
+def _velocity(big_u, big_v, i, j, at):
+    """The velocity at sample (i, j) of the points ``at``, from the padded components."""
+    if at == AT_U:
+        return (1.0 * big_u[i, j + 1],
+                0.25 * (big_v[i, j] + big_v[i, j + 1] + big_v[i + 1, j] + big_v[i + 1, j + 1]))
+    if at == AT_V:
+        return (0.25 * (big_u[i, j] + big_u[i + 1, j] + big_u[i, j + 1] + big_u[i + 1, j + 1]),
+                1.0 * big_v[i + 1, j])
+    return (0.5 * (big_u[i, j + 1] + big_u[i + 1, j + 1]),
+            0.5 * (big_v[i + 1, j] + big_v[i + 1, j + 1]))
 
 
 @njit(cache=True, nogil=True)
-def _advect_field(out, free, big, big_u, big_v, ox, oy, c, geo, gu, gv):
+def _velocity_adjoint(bu, bv, i, j, at, gx, gy):
+    """Transpose of :func:`_velocity`: adds the cotangents (gx, gy) of the velocity at sample
+    (i, j) into the padded components' cotangents."""
+    if at == AT_U:
+        bu[i, j + 1] += gx
+        gy = 0.25 * gy
+        bv[i, j] += gy
+        bv[i, j + 1] += gy
+        bv[i + 1, j] += gy
+        bv[i + 1, j + 1] += gy
+    elif at == AT_V:
+        gx = 0.25 * gx
+        bu[i, j] += gx
+        bu[i + 1, j] += gx
+        bu[i, j + 1] += gx
+        bu[i + 1, j + 1] += gx
+        bv[i + 1, j] += gy
+    else:
+        gx, gy = 0.5 * gx, 0.5 * gy
+        bu[i, j + 1] += gx
+        bu[i + 1, j + 1] += gx
+        bv[i + 1, j] += gy
+        bv[i + 1, j + 1] += gy
+
+
+@njit(cache=True, nogil=True)
+def _advect_field(out, free, big, big_u, big_v, at, ox, oy, c, geo):
     """Semi-Lagrangian: out = the padded field ``big`` at x − c u(x), on the ``free`` samples."""
     for i in range(free.shape[0]):
         for j in range(free.shape[1]):
             if free[i, j]:
-                x, y = i + ox, j + oy
-                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
-                out[i, j] = _sample(big, x - c * vx + ox, y - c * vy + oy, geo)
+                vx, vy = _velocity(big_u, big_v, i, j, at)
+                out[i, j] = _sample(big, i + 2 * ox - c * vx, j + 2 * oy - c * vy, geo)
 
 
 @njit(cache=True, nogil=True)
-def _advect_field_adjoint(gout, free, big, bbig, big_u, big_v, bu, bv, ox, oy, c, geo, gu, gv):
+def _advect_field_adjoint(gout, free, big, bbig, big_u, big_v, bu, bv, at, ox, oy, c, geo, out,
+                          keep):
     """Transpose of :func:`_advect_field`: the cotangents ``gout`` of the free samples move
-    into ``bbig`` (the field's) and ``bu``, ``bv`` (the velocity's); they become zero."""
+    into ``bbig`` (the field's) and ``bu``, ``bv`` (the velocity's); they become zero. With
+    ``keep``, ``out`` receives the advected samples too (what the forward step wrote), which
+    the parameters' cotangents need: the same bilinear weights give them at no extra pass."""
     for i in range(free.shape[0]):
         for j in range(free.shape[1]):
             if free[i, j]:
                 g = gout[i, j]
                 gout[i, j] = 0.0
-                x, y = i + ox, j + oy
-                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
-                ax, ay = _sample_adjoint(big, bbig, x - c * vx + ox, y - c * vy + oy, geo, g)
-                _velocity_adjoint(x, y, big_u, big_v, bu, bv, gu, gv, -c * ax, -c * ay)
+                vx, vy = _velocity(big_u, big_v, i, j, at)
+                value, ax, ay = _sample_adjoint(big, bbig, i + 2 * ox - c * vx,
+                                                j + 2 * oy - c * vy, geo, g)
+                if keep:
+                    out[i, j] = value
+                _velocity_adjoint(bu, bv, i, j, at, -c * ax, -c * ay)
 
 
 @njit(cache=True, nogil=True)
@@ -349,7 +399,7 @@ def _bounds(q, a, b, geo):
 
 
 @njit(cache=True, nogil=True)
-def _correct_field(out, free, big, big_hat, big_u, big_v, ox, oy, c, geo, gu, gv):
+def _correct_field(out, free, big, big_hat, big_u, big_v, at, ox, oy, c, geo):
     """MacCormack: out = φ̂ + ½ (φ − φ̂(x + c u(x))) on the free samples, clamped to the values
     of φ around the backtraced point x − c u(x). φ, φ̂: the field before and after the
     semi-Lagrangian step, padded (``big``, ``big_hat``)."""
@@ -357,11 +407,10 @@ def _correct_field(out, free, big, big_hat, big_u, big_v, ox, oy, c, geo, gu, gv
     for i in range(free.shape[0]):
         for j in range(free.shape[1]):
             if free[i, j]:
-                x, y = i + ox, j + oy
-                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
-                back = _sample(big_hat, x + c * vx + ox, y + c * vy + oy, geo)
+                vx, vy = _velocity(big_u, big_v, i, j, at)
+                back = _sample(big_hat, i + 2 * ox + c * vx, j + 2 * oy + c * vy, geo)
                 value = big_hat[i + pi, j + pj] + 0.5 * (big[i + pi, j + pj] - back)
-                lo, hi = _bounds(big, x - c * vx + ox, y - c * vy + oy, geo)
+                lo, hi = _bounds(big, i + 2 * ox - c * vx, j + 2 * oy - c * vy, geo)
                 if value.real < big[lo].real:
                     value = big[lo]
                 elif value.real > big[hi].real:
@@ -370,8 +419,8 @@ def _correct_field(out, free, big, big_hat, big_u, big_v, ox, oy, c, geo, gu, gv
 
 
 @njit(cache=True, nogil=True)
-def _correct_field_adjoint(gout, free, big, big_hat, bbig, bhat, big_u, big_v, bu, bv, ox, oy,
-                           c, geo, gu, gv):
+def _correct_field_adjoint(gout, free, big, big_hat, bbig, bhat, big_u, big_v, bu, bv, at, ox,
+                           oy, c, geo):
     """Transpose of :func:`_correct_field`: ``gout`` becomes the cotangent of φ̂ at the free
     samples (zero where the value was clamped); the rest moves into ``bbig`` (φ), ``bhat``
     (φ̂, padded) and ``bu``, ``bv`` (the velocity)."""
@@ -380,12 +429,11 @@ def _correct_field_adjoint(gout, free, big, big_hat, bbig, bhat, big_u, big_v, b
         for j in range(free.shape[1]):
             if free[i, j]:
                 g = gout[i, j]
-                x, y = i + ox, j + oy
-                vx, vy = _velocity(x, y, big_u, big_v, gu, gv)
-                fx, fy = x + c * vx + ox, y + c * vy + oy
+                vx, vy = _velocity(big_u, big_v, i, j, at)
+                fx, fy = i + 2 * ox + c * vx, j + 2 * oy + c * vy
                 value = big_hat[i + pi, j + pj] + 0.5 * (big[i + pi, j + pj]
                                                          - _sample(big_hat, fx, fy, geo))
-                lo, hi = _bounds(big, x - c * vx + ox, y - c * vy + oy, geo)
+                lo, hi = _bounds(big, i + 2 * ox - c * vx, j + 2 * oy - c * vy, geo)
                 if value.real < big[lo].real:
                     bbig[lo] += g
                     gout[i, j] = 0.0
@@ -394,29 +442,54 @@ def _correct_field_adjoint(gout, free, big, big_hat, bbig, bhat, big_u, big_v, b
                     gout[i, j] = 0.0
                 else:
                     bbig[i + pi, j + pj] += 0.5 * g
-                    ax, ay = _sample_adjoint(big_hat, bhat, fx, fy, geo, -0.5 * g)
-                    _velocity_adjoint(x, y, big_u, big_v, bu, bv, gu, gv, c * ax, c * ay)
+                    _, ax, ay = _sample_adjoint(big_hat, bhat, fx, fy, geo, -0.5 * g)
+                    _velocity_adjoint(bu, bv, i, j, at, c * ax, c * ay)
+
+
+@njit(cache=True, nogil=True)
+def _neighbours(i, n, periodic):
+    """The faces before and after face i of the n + 1 faces along an axis, as the Laplacian
+    reads them: a side's face (i = 0 or n, not periodic) mirrors itself across the side."""
+    im = i - 1 if i > 0 else (n - 1 if periodic else i)
+    ip = i + 1 if i < n else i
+    return im, ip
 
 
 @njit(cache=True, nogil=True)
 def _laplacian_u(big, i, j, px):
     """The 5-point Laplacian (times h²) of u at free face (i, j), from the padded field.
     An outflow face (i = 0 or nx, not periodic) mirrors itself across the side."""
-    nx = big.shape[0] - 1
-    im = i - 1 if i > 0 else (nx - 1 if px else i)
-    ip = i + 1 if i < nx else i
-    return (big[im, j + 1] + big[ip, j + 1] + big[i, j] + big[i, j + 2]
-            - 4.0 * big[i, j + 1]), im, ip
+    im, ip = _neighbours(i, big.shape[0] - 1, px)
+    return big[im, j + 1] + big[ip, j + 1] + big[i, j] + big[i, j + 2] - 4.0 * big[i, j + 1]
+
+
+@njit(cache=True, nogil=True)
+def _laplacian_u_adjoint(bbig, i, j, px, g):
+    """Transpose of :func:`_laplacian_u` times ``g``, added into the padded ``bbig``."""
+    im, ip = _neighbours(i, bbig.shape[0] - 1, px)
+    bbig[im, j + 1] += g
+    bbig[ip, j + 1] += g
+    bbig[i, j] += g
+    bbig[i, j + 2] += g
+    bbig[i, j + 1] -= 4.0 * g
 
 
 @njit(cache=True, nogil=True)
 def _laplacian_v(big, i, j, py):
     """As :func:`_laplacian_u`, for v at free face (i, j)."""
-    ny = big.shape[1] - 1
-    jm = j - 1 if j > 0 else (ny - 1 if py else j)
-    jp = j + 1 if j < ny else j
-    return (big[i, j] + big[i + 2, j] + big[i + 1, jm] + big[i + 1, jp]
-            - 4.0 * big[i + 1, j]), jm, jp
+    jm, jp = _neighbours(j, big.shape[1] - 1, py)
+    return big[i, j] + big[i + 2, j] + big[i + 1, jm] + big[i + 1, jp] - 4.0 * big[i + 1, j]
+
+
+@njit(cache=True, nogil=True)
+def _laplacian_v_adjoint(bbig, i, j, py, g):
+    """Transpose of :func:`_laplacian_v` times ``g``, added into the padded ``bbig``."""
+    jm, jp = _neighbours(j, bbig.shape[1] - 1, py)
+    bbig[i, j] += g
+    bbig[i + 2, j] += g
+    bbig[i + 1, jm] += g
+    bbig[i + 1, jp] += g
+    bbig[i + 1, j] -= 4.0 * g
 
 
 @njit(cache=True, nogil=True)
@@ -428,58 +501,149 @@ def _buoyancy_cells(j, ny, py):
 
 
 @njit(cache=True, nogil=True)
+def _viscous_solve(b, x, w, t, kd, vfac):
+    """x = (I − kd A)⁻¹ b, A the Laplacian of the free faces (:func:`velocity_laplacian`), from
+    the factors of I − Re(kd) A. An imaginary part of kd (a complex-step perturbation of ν)
+    enters by one more solve, x ← (I − Re(kd) A)⁻¹ (b + i Im(kd) A x), whose error is of second
+    order in it: exact for the complex step. I − kd A is symmetric, so this is also the
+    transposed solve. ``w``, ``t``: scratch."""
+    lp, li, lx, up, ui, ux, udiag, perm_r, perm_c, ap, ai, av = vfac
+    _solve(b, x, w, lp, li, lx, up, ui, ux, udiag, perm_r, perm_c)
+    delta = kd - kd.real
+    if delta != 0:
+        for r in range(b.shape[0]):
+            s = 0.0 * x[r]
+            for q in range(ap[r], ap[r + 1]):
+                s += av[q] * x[ai[q]]
+            t[r] = b[r] + delta * s
+        _solve(t, x, w, lp, li, lx, up, ui, ux, udiag, perm_r, perm_c)
+
+
+@njit(cache=True, nogil=True)
+def _inputs(src, u, v, d, big_u, big_v, big_d, ukind, vkind, uprof, vprof, fluid, speed, sides,
+            lid, has_d):
+    """Step 0 and the padded step inputs (big_u, big_v, big_d)."""
+    _begin(src, u, v, d, ukind, vkind, uprof, vprof, fluid, speed, has_d)
+    _pad_u(u, big_u, sides, lid)
+    _pad_v(v, big_v, sides, lid)
+    if has_d:
+        _pad_d(d, big_d, sides[0] == PERIODIC, sides[2] == PERIODIC)
+
+
+@njit(cache=True, nogil=True)
+def _advect(u, v, d1, big_u, big_v, big_d, big_uh, big_vh, big_dh, ufree, vfree, fluid, ukind,
+            vkind, sides, lid, c, gu, gv, gd, mc, has_d):
+    """Step 1: the advected velocity into u, v (whose fixed faces hold the boundary values) and
+    the advected density into d1, from the padded inputs; with ``mc``, corrected (MacCormack),
+    the semi-Lagrangian results kept padded in big_uh, big_vh, big_dh."""
+    _advect_field(u, ufree, big_u, big_u, big_v, AT_U, 0.0, 0.5, c, gu)
+    _advect_field(v, vfree, big_v, big_u, big_v, AT_V, 0.5, 0.0, c, gv)
+    if has_d:
+        _advect_field(d1, fluid, big_d, big_u, big_v, AT_CELL, 0.5, 0.5, c, gd)
+    _refresh(u, v, ukind, vkind)
+    if mc:
+        _pad_u(u, big_uh, sides, lid)
+        _pad_v(v, big_vh, sides, lid)
+        _correct_field(u, ufree, big_u, big_uh, big_u, big_v, AT_U, 0.0, 0.5, c, gu)
+        _correct_field(v, vfree, big_v, big_vh, big_u, big_v, AT_V, 0.5, 0.0, c, gv)
+        if has_d:
+            _pad_d(d1, big_dh, sides[0] == PERIODIC, sides[2] == PERIODIC)
+            _correct_field(d1, fluid, big_d, big_dh, big_u, big_v, AT_CELL, 0.5, 0.5, c, gd)
+        _refresh(u, v, ukind, vkind)
+
+
+@njit(cache=True, nogil=True)
+def _viscosity(u, v, big_u1, big_v1, kd, sides, lid, ukind, vkind, implicit, uidx, vidx, vfac,
+               big_zu, big_zv, vrhs, vsol, vscratch, vtmp):
+    """Step 2 on the free faces of the advected u, v (padded in big_u1, big_v1), Δ_h here the
+    Laplacian times h²: explicit, u += kd Δ_h u; implicit (backward Euler), u ← the solution x
+    of x − kd Δ_h x = u, whose Laplacian reads the boundary values and lids as the explicit
+    one does. ``uidx``, ``vidx``
+    number the free faces; big_zu, big_zv, vrhs, vsol, vscratch, vtmp: scratch."""
+    nx1, ny = u.shape
+    nx = nx1 - 1
+    px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
+    if not implicit:
+        for i in range(nx1):
+            for j in range(ny):
+                if ukind[i, j] == FREE:
+                    u[i, j] += kd * _laplacian_u(big_u1, i, j, px)
+        for i in range(nx):
+            for j in range(ny + 1):
+                if vkind[i, j] == FREE:
+                    v[i, j] += kd * _laplacian_v(big_v1, i, j, py)
+        return
+    # the right-hand side: u plus kd times the Laplacian of the boundary values alone
+    for i in range(nx1):
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                vrhs[uidx[i, j]] = u[i, j]
+                u[i, j] = 0.0
+    for i in range(nx):
+        for j in range(ny + 1):
+            if vkind[i, j] == FREE:
+                vrhs[vidx[i, j]] = v[i, j]
+                v[i, j] = 0.0
+    _refresh(u, v, ukind, vkind)
+    _pad_u(u, big_zu, sides, lid)
+    _pad_v(v, big_zv, sides, lid)
+    for i in range(nx1):
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                vrhs[uidx[i, j]] += kd * _laplacian_u(big_zu, i, j, px)
+    for i in range(nx):
+        for j in range(ny + 1):
+            if vkind[i, j] == FREE:
+                vrhs[vidx[i, j]] += kd * _laplacian_v(big_zv, i, j, py)
+    _viscous_solve(vrhs, vsol, vscratch, vtmp, kd, vfac)
+    for i in range(nx1):
+        for j in range(ny):
+            if ukind[i, j] == FREE:
+                u[i, j] = vsol[uidx[i, j]]
+    for i in range(nx):
+        for j in range(ny + 1):
+            if vkind[i, j] == FREE:
+                v[i, j] = vsol[vidx[i, j]]
+    _refresh(u, v, ukind, vkind)
+
+
+@njit(cache=True, nogil=True)
 def _forward_step(src, dst, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind, vkind, uprof,
-                  vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac, mc, work, project):
-    """One step from ``src`` (C, nx + 1, ny + 1) into ``dst`` (if ``project``), keeping the
-    intermediate fields in ``work`` for the adjoint (see :meth:`Incompressible2D._work`);
-    ``mc``: MacCormack advection."""
+                  vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac, mc, implicit, uidx,
+                  vidx, vfac, work):
+    """One step from ``src`` (C, nx + 1, ny + 1) into ``dst`` (see
+    :meth:`Incompressible2D._work` for ``work``); ``mc``: MacCormack advection; ``implicit``:
+    backward-Euler viscosity with the factors ``vfac``."""
     (u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch, big_uh, big_vh,
-     big_dh) = work
+     big_dh, vrhs, vsol, vscratch, vtmp) = work
     nx1, ny = u.shape
     nx = nx1 - 1
     nu, buoy, speed = p[0], p[1], p[2]
     has_d = src.shape[0] > 2
     px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
-    _begin(src, u, v, d, ukind, vkind, uprof, vprof, fluid, speed, has_d)
-    _pad_u(u, big_u, sides, lid)
-    _pad_v(v, big_v, sides, lid)
-    if has_d:
-        _pad_d(d, big_d, px, py)
-    _advect_field(u, ufree, big_u, big_u, big_v, 0.0, 0.5, c, gu, gu, gv)
-    _advect_field(v, vfree, big_v, big_u, big_v, 0.5, 0.0, c, gv, gu, gv)
-    if has_d:
-        _advect_field(d1, fluid, big_d, big_u, big_v, 0.5, 0.5, c, gd, gu, gv)
-    _refresh(u, v, ukind, vkind)
-    if mc:
-        _pad_u(u, big_uh, sides, lid)
-        _pad_v(v, big_vh, sides, lid)
-        _correct_field(u, ufree, big_u, big_uh, big_u, big_v, 0.0, 0.5, c, gu, gu, gv)
-        _correct_field(v, vfree, big_v, big_vh, big_u, big_v, 0.5, 0.0, c, gv, gu, gv)
-        if has_d:
-            _pad_d(d1, big_dh, px, py)
-            _correct_field(d1, fluid, big_d, big_dh, big_u, big_v, 0.5, 0.5, c, gd, gu, gv)
-        _refresh(u, v, ukind, vkind)
+    _inputs(src, u, v, d, big_u, big_v, big_d, ukind, vkind, uprof, vprof, fluid, speed, sides,
+            lid, has_d)
+    _advect(u, v, d1, big_u, big_v, big_d, big_uh, big_vh, big_dh, ufree, vfree, fluid, ukind,
+            vkind, sides, lid, c, gu, gv, gd, mc, has_d)
     _pad_u(u, big_u1, sides, lid)
     _pad_v(v, big_v1, sides, lid)
-    if not project:
-        return
-    kd = kdiff * nu
+    # the MacCormack scratch (big_uh, big_vh) is free again: the implicit solve's scratch
+    _viscosity(u, v, big_u1, big_v1, kdiff * nu, sides, lid, ukind, vkind, implicit, uidx, vidx,
+               vfac, big_uh, big_vh, vrhs, vsol, vscratch, vtmp)
     controlled = ctrl.shape[0] > 0
-    for i in range(nx1):
-        for j in range(ny):
-            if ukind[i, j] == FREE:
-                u[i, j] += kd * _laplacian_u(big_u1, i, j, px)[0]
-                if controlled:
+    if controlled or has_d:
+        for i in range(nx1):
+            for j in range(ny):
+                if ukind[i, j] == FREE and controlled:
                     u[i, j] += dt * ctrl[k, bi, 0, i, j]
-    for i in range(nx):
-        for j in range(ny + 1):
-            if vkind[i, j] == FREE:
-                v[i, j] += kd * _laplacian_v(big_v1, i, j, py)[0]
-                if controlled:
-                    v[i, j] += dt * ctrl[k, bi, 1, i, j]
-                if has_d:
-                    lo, hi = _buoyancy_cells(j, ny, py)
-                    v[i, j] += dt * buoy * 0.5 * (d1[i, lo] + d1[i, hi])
+        for i in range(nx):
+            for j in range(ny + 1):
+                if vkind[i, j] == FREE:
+                    if controlled:
+                        v[i, j] += dt * ctrl[k, bi, 1, i, j]
+                    if has_d:
+                        lo, hi = _buoyancy_cells(j, ny, py)
+                        v[i, j] += dt * buoy * 0.5 * (d1[i, lo] + d1[i, hi])
     _refresh(u, v, ukind, vkind)
     # the projection
     for i in range(nx):
@@ -515,36 +679,42 @@ def _forward_step(src, dst, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind, vki
 
 @njit(cache=True, nogil=True)
 def ins_forward(states, n, ctrl, p, dt, c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid,
-                ufree, vfree, cell_index, gu, gv, gd, fac, mc, work):
+                ufree, vfree, cell_index, gu, gv, gd, fac, mc, implicit, uidx, vidx, vfac, work):
     nslot, nbatch = states.shape[0], states.shape[1]
     for bi in range(nbatch):
         for k in range(n):
             _forward_step(states[k % nslot, bi], states[(k + 1) % nslot, bi], ctrl, k, bi, p, dt,
                           c, kdiff, sides, lid, ukind, vkind, uprof, vprof, fluid, ufree, vfree,
-                          cell_index, gu, gv, gd, fac, mc, work, True)
+                          cell_index, gu, gv, gd, fac, mc, implicit, uidx, vidx, vfac, work)
 
 
 @njit(cache=True, nogil=True)
 def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdiff, sides, lid,
                 ukind, vkind, uprof, vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac, mc,
-                work, bwork):
+                implicit, uidx, vidx, vfac, work, bwork):
     m, nbatch = states.shape[0], states.shape[1]
     (u, v, d, big_u, big_v, big_d, big_u1, big_v1, d1, rhs, phi, scratch, big_uh, big_vh,
-     big_dh) = work
-    ub, vb, db, bu, bv, bd, phib, buh, bvh, bdh = bwork
+     big_dh, vrhs, vsol, vscratch, vtmp) = work
+    ub, vb, db, bu, bv, bd, phib, buh, bvh, bdh, wu, wv, gvb = bwork
     nx1, ny = u.shape
     nx = nx1 - 1
-    nu, buoy = p[0], p[1]
+    nu, buoy, speed = p[0], p[1], p[2]
     has_d = states.shape[2] > 2
     px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
     kd = kdiff * nu
     controlled = cbar.shape[0] > 0
+    # Semi-Lagrangian advection is reversed from the step's padded input alone; the advected
+    # fields the parameters' cotangents need come out of that reverse pass. MacCormack's
+    # correction needs them before it: its step is recomputed.
+    keep = want_p and not mc
     for bi in range(nbatch):
         out = ubar[bi]
         for k in range(m - 1, -1, -1):
-            _forward_step(states[k, bi], out, ctrl, k, bi, p, dt, c, kdiff, sides, lid, ukind,
-                          vkind, uprof, vprof, fluid, ufree, vfree, cell_index, gu, gv, gd, fac,
-                          mc, work, False)
+            _inputs(states[k, bi], u, v, d, big_u, big_v, big_d, ukind, vkind, uprof, vprof,
+                    fluid, speed, sides, lid, has_d)
+            if mc:
+                _advect(u, v, d1, big_u, big_v, big_d, big_uh, big_vh, big_dh, ufree, vfree,
+                        fluid, ukind, vkind, sides, lid, c, gu, gv, gd, mc, has_d)
             ub[:] = out[0, :, :ny]
             vb[:] = out[1, :nx, :]
             if has_d:
@@ -580,30 +750,18 @@ def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdi
                         ub[i, j] += y
                         vb[i, j + 1] -= y
                         vb[i, j] += y
-            # the forces, the buoyancy and the viscosity
+            # the forces and the buoyancy
             _fold(ub, vb, ukind, vkind)
             if controlled and has_d:
                 for i in range(nx):
                     for j in range(ny):
                         if fluid[i, j]:
                             cbar[k, bi, 2, i, j] = dt * db[i, j]
-            bu[:] = 0.0
-            bv[:] = 0.0
-            for i in range(nx1):
-                for j in range(ny):
-                    if ukind[i, j] == FREE:
-                        g = ub[i, j]
-                        if controlled:
-                            cbar[k, bi, 0, i, j] = dt * g
-                        lap, im, ip = _laplacian_u(big_u1, i, j, px)
-                        if want_p:
-                            pbar[0] += kdiff * g * lap
-                        g *= kd
-                        bu[im, j + 1] += g
-                        bu[ip, j + 1] += g
-                        bu[i, j] += g
-                        bu[i, j + 2] += g
-                        bu[i, j + 1] -= 4.0 * g
+            if controlled:
+                for i in range(nx1):
+                    for j in range(ny):
+                        if ukind[i, j] == FREE:
+                            cbar[k, bi, 0, i, j] = dt * ub[i, j]
             for i in range(nx):
                 for j in range(ny + 1):
                     if vkind[i, j] == FREE:
@@ -611,20 +769,47 @@ def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdi
                         if controlled:
                             cbar[k, bi, 1, i, j] = dt * g
                         if has_d:
+                            gvb[i, j] = g
                             lo, hi = _buoyancy_cells(j, ny, py)
-                            if want_p:
-                                pbar[1] += dt * g * 0.5 * (d1[i, lo] + d1[i, hi])
                             db[i, lo] += dt * buoy * 0.5 * g
                             db[i, hi] += dt * buoy * 0.5 * g
-                        lap, jm, jp = _laplacian_v(big_v1, i, j, py)
-                        if want_p:
-                            pbar[0] += kdiff * g * lap
-                        g *= kd
-                        bv[i, j] += g
-                        bv[i + 2, j] += g
-                        bv[i + 1, jm] += g
-                        bv[i + 1, jp] += g
-                        bv[i + 1, j] -= 4.0 * g
+            # the viscosity: ū += kd Δ_hᵀ w, w = ū (explicit) or (I − kd A)⁻¹ ū (implicit)
+            for i in range(nx1):
+                for j in range(ny):
+                    if ukind[i, j] == FREE:
+                        wu[i, j] = ub[i, j]
+            for i in range(nx):
+                for j in range(ny + 1):
+                    if vkind[i, j] == FREE:
+                        wv[i, j] = vb[i, j]
+            if implicit:
+                for i in range(nx1):
+                    for j in range(ny):
+                        if ukind[i, j] == FREE:
+                            vrhs[uidx[i, j]] = wu[i, j]
+                for i in range(nx):
+                    for j in range(ny + 1):
+                        if vkind[i, j] == FREE:
+                            vrhs[vidx[i, j]] = wv[i, j]
+                _viscous_solve(vrhs, vsol, vscratch, vtmp, kd, vfac)
+                for i in range(nx1):
+                    for j in range(ny):
+                        if ukind[i, j] == FREE:
+                            wu[i, j] = vsol[uidx[i, j]]
+                for i in range(nx):
+                    for j in range(ny + 1):
+                        if vkind[i, j] == FREE:
+                            wv[i, j] = vsol[vidx[i, j]]
+            bu[:] = 0.0
+            bv[:] = 0.0
+            for i in range(nx1):
+                for j in range(ny):
+                    if ukind[i, j] == FREE:
+                        _laplacian_u_adjoint(bu, i, j, px, kd * wu[i, j])
+            for i in range(nx):
+                for j in range(ny + 1):
+                    if vkind[i, j] == FREE:
+                        _laplacian_v_adjoint(bv, i, j, py, kd * wv[i, j])
             _unpad_u(bu, ub, sides)
             _unpad_v(bv, vb, sides)
             # the advection
@@ -637,27 +822,52 @@ def ins_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt, c, kdi
                 bvh[:] = 0.0
                 bdh[:] = 0.0
                 _correct_field_adjoint(ub, ufree, big_u, big_uh, bu, buh, big_u, big_v, bu, bv,
-                                       0.0, 0.5, c, gu, gu, gv)
+                                       AT_U, 0.0, 0.5, c, gu)
                 _correct_field_adjoint(vb, vfree, big_v, big_vh, bv, bvh, big_u, big_v, bu, bv,
-                                       0.5, 0.0, c, gv, gu, gv)
+                                       AT_V, 0.5, 0.0, c, gv)
                 if has_d:
                     _correct_field_adjoint(db, fluid, big_d, big_dh, bd, bdh, big_u, big_v, bu,
-                                           bv, 0.5, 0.5, c, gd, gu, gv)
+                                           bv, AT_CELL, 0.5, 0.5, c, gd)
                     _unpad_d(bdh, db, px, py)
                 _unpad_u(buh, ub, sides)
                 _unpad_v(bvh, vb, sides)
                 _fold(ub, vb, ukind, vkind)
-            _advect_field_adjoint(ub, ufree, big_u, bu, big_u, big_v, bu, bv, 0.0, 0.5, c, gu, gu,
-                                  gv)
-            _advect_field_adjoint(vb, vfree, big_v, bv, big_u, big_v, bu, bv, 0.5, 0.0, c, gv, gu,
-                                  gv)
+            _advect_field_adjoint(ub, ufree, big_u, bu, big_u, big_v, bu, bv, AT_U, 0.0, 0.5, c,
+                                  gu, u, keep)
+            _advect_field_adjoint(vb, vfree, big_v, bv, big_u, big_v, bu, bv, AT_V, 0.5, 0.0, c,
+                                  gv, v, keep)
             if has_d:
-                _advect_field_adjoint(db, fluid, big_d, bd, big_u, big_v, bu, bv, 0.5, 0.5, c, gd,
-                                      gu, gv)
+                _advect_field_adjoint(db, fluid, big_d, bd, big_u, big_v, bu, bv, AT_CELL, 0.5,
+                                      0.5, c, gd, d1, keep)
             _unpad_u(bu, ub, sides)
             _unpad_v(bv, vb, sides)
             if has_d:
                 _unpad_d(bd, db, px, py)
+            # the parameters' terms, now that the advected fields are at hand:
+            # ν: kdiff ⟨w, Δ_h u⟩ over the free faces, u the velocity the Laplacian acted on (the
+            # advected one; implicit: the viscous step's solution); the buoyancy:
+            # Δt ⟨ū_v, ρ̄⟩ with ū_v the cotangent of the forces
+            if want_p:
+                if keep:
+                    _refresh(u, v, ukind, vkind)
+                if implicit:
+                    _viscosity(u, v, big_u1, big_v1, kd, sides, lid, ukind, vkind, implicit,
+                               uidx, vidx, vfac, big_uh, big_vh, vrhs, vsol, vscratch, vtmp)
+                _pad_u(u, big_u1, sides, lid)
+                _pad_v(v, big_v1, sides, lid)
+                s = 0.0 * kd
+                for i in range(nx1):
+                    for j in range(ny):
+                        if ukind[i, j] == FREE:
+                            s += wu[i, j] * _laplacian_u(big_u1, i, j, px)
+                for i in range(nx):
+                    for j in range(ny + 1):
+                        if vkind[i, j] == FREE:
+                            s += wv[i, j] * _laplacian_v(big_v1, i, j, py)
+                            if has_d:
+                                lo, hi = _buoyancy_cells(j, ny, py)
+                                pbar[1] += dt * gvb[i, j] * 0.5 * (d1[i, lo] + d1[i, hi])
+                pbar[0] += kdiff * s
             # the boundary values
             _fold(ub, vb, ukind, vkind)
             out[:] = 0.0
@@ -726,7 +936,64 @@ class _Geometry:
         self.ufree, self.vfree = ukind == FREE, vkind == FREE
         self.cell_index = np.full((nx, ny), -1, dtype=np.int64)
         self.cell_index[self.fluid] = np.arange(int(self.fluid.sum()))
+        # the free faces, numbered u's first: the unknowns of an implicit viscous step
+        nu_free = int(self.ufree.sum())
+        self.uidx = np.full((nx + 1, ny), -1, dtype=np.int64)
+        self.uidx[self.ufree] = np.arange(nu_free)
+        self.vidx = np.full((nx, ny + 1), -1, dtype=np.int64)
+        self.vidx[self.vfree] = nu_free + np.arange(int(self.vfree.sum()))
+        self.sides = sides
         self.matrix, self.factors = self._factorise(name, nx, ny, px, py)
+
+    def velocity_laplacian(self) -> sp.csr_matrix:
+        """A: the 5-point Laplacian (times h²) of the velocity on its free faces (numbered by
+        ``uidx``, ``vidx``) as the kernels apply it, ghost layers, periodic copies and outflow
+        mirrors included, with every fixed face and lid speed zero: the explicit viscous step
+        adds kd (A u + b), b the part the boundary values and lids contribute. Symmetric."""
+        nx, ny = self.ukind.shape[0] - 1, self.ukind.shape[1]
+        sides = self.sides
+        px, py = sides[0] == PERIODIC, sides[2] == PERIODIC
+        rows, cols, vals = [], [], []
+
+        def u_face(a, b):  # padded u entry (a, b): its face's unknown and sign, or None
+            if b == 0:
+                j, sign = (ny - 1 if py else 0), _ghost_sign(sides[2])
+            elif b == ny + 1:
+                j, sign = (0 if py else ny - 1), _ghost_sign(sides[3])
+            else:
+                j, sign = b - 1, 1.0
+            i = 0 if self.ukind[a, j] == COPY else a
+            return (self.uidx[i, j], sign) if self.ukind[i, j] == FREE else None
+
+        def v_face(a, b):  # padded v entry (a, b)
+            if a == 0:
+                i, sign = (nx - 1 if px else 0), _ghost_sign(sides[0])
+            elif a == nx + 1:
+                i, sign = (0 if px else nx - 1), _ghost_sign(sides[1])
+            else:
+                i, sign = a - 1, 1.0
+            j = 0 if self.vkind[i, b] == COPY else b
+            return (self.vidx[i, j], sign) if self.vkind[i, j] == FREE else None
+
+        def add(row, entries):
+            for entry, weight in entries:
+                if entry is not None:
+                    rows.append(row)
+                    cols.append(entry[0])
+                    vals.append(weight * entry[1])
+
+        for i, j in np.argwhere(self.ufree):
+            im, ip = _neighbours(i, nx, px)
+            add(self.uidx[i, j], [(u_face(im, j + 1), 1.0), (u_face(ip, j + 1), 1.0),
+                                  (u_face(i, j), 1.0), (u_face(i, j + 2), 1.0),
+                                  (u_face(i, j + 1), -4.0)])
+        for i, j in np.argwhere(self.vfree):
+            jm, jp = _neighbours(j, ny, py)
+            add(self.vidx[i, j], [(v_face(i, j), 1.0), (v_face(i + 2, j), 1.0),
+                                  (v_face(i + 1, jm), 1.0), (v_face(i + 1, jp), 1.0),
+                                  (v_face(i + 1, j), -4.0)])
+        n = int(self.ufree.sum() + self.vfree.sum())
+        return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
 
     def _factorise(self, name, nx, ny, px, py):
         """M = −D G on the fluid cells, pinned once in each region without an outflow."""
@@ -780,20 +1047,32 @@ class _Geometry:
             diag[cells[0]] += 1.0
         matrix = (sp.csc_matrix((-np.ones(len(rows)), (rows, cols)), shape=(n, n))
                   + sp.diags(diag)).tocsc()
-        # M is symmetric and positive definite: a symmetric minimum-degree ordering without
-        # pivoting keeps half the fill of the default column ordering (a 2n × n channel)
-        lu = splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-        lower, upper = lu.L.tocsc(), lu.U.tocsc()
-        lower.sort_indices()
-        upper.sort_indices()
-        lstrict = sp.tril(lower, -1).tocsc()
-        ustrict = sp.triu(upper, 1).tocsc()
-        factors = (lstrict.indptr.astype(np.int64), lstrict.indices.astype(np.int64),
-                   lstrict.data, ustrict.indptr.astype(np.int64),
-                   ustrict.indices.astype(np.int64), ustrict.data, upper.diagonal().copy(),
-                   lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
-        return matrix, factors
+        return matrix, _lu_factors(matrix)
+
+
+def _lu_factors(matrix: sp.spmatrix) -> tuple[np.ndarray, ...]:
+    """The factors :func:`_solve` takes, of a symmetric positive definite ``matrix``: a
+    symmetric minimum-degree ordering without pivoting (half the fill of the default column
+    ordering on a 2n × n channel)."""
+    lu = splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+              options={"SymmetricMode": True})
+    lower, upper = lu.L.tocsc(), lu.U.tocsc()
+    lower.sort_indices()
+    upper.sort_indices()
+    lstrict = sp.tril(lower, -1).tocsc()
+    ustrict = sp.triu(upper, 1).tocsc()
+    return (lstrict.indptr.astype(np.int64), lstrict.indices.astype(np.int64),
+            lstrict.data, ustrict.indptr.astype(np.int64),
+            ustrict.indices.astype(np.int64), ustrict.data, upper.diagonal().copy(),
+            lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
+
+
+def _no_factors() -> tuple[np.ndarray, ...]:
+    """Factors and a matrix of no unknowns, typed as the implicit viscous step's: the explicit
+    step's kernels take them and read nothing."""
+    indptr, index, values = np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return (indptr, index, values, indptr, index, values, values, index, index, indptr, index,
+            values)
 
 
 def _profile(profile: str, n: int) -> np.ndarray:
@@ -829,8 +1108,8 @@ def _face_kind(name, i, n, lo, hi, fluid_lo, fluid_hi, side_lo, side_hi, prof, w
 @register
 class Incompressible2D(Stepper):
     """Incompressible Navier–Stokes on a staggered grid with walls, lids, inflow, outflow,
-    periodic sides and obstacles: semi-Lagrangian advection (or MacCormack), explicit
-    viscosity, an optional smoke density with Boussinesq buoyancy and an exact pressure
+    periodic sides and obstacles: semi-Lagrangian advection (or MacCormack), explicit or
+    implicit viscosity, an optional smoke density with Boussinesq buoyancy and an exact pressure
     projection (factorised once); parameters ``nu``, ``buoyancy`` (with density),
     ``inflow_speed`` (with an inflow side)."""
 
@@ -847,6 +1126,7 @@ class Incompressible2D(Stepper):
         "profile": Choice(PROFILES),
         "obstacle": Choice((None, "box")),
         "density": Choice((False, True)),
+        "viscosity": Choice(VISCOSITIES),
         "nu": Range(0.005, 0.05),
         "buoyancy": Range(-1.0, 1.0),
         "inflow_speed": Range(0.5, 1.5),
@@ -868,6 +1148,7 @@ class Incompressible2D(Stepper):
         density: bool = False,
         buoyancy: float = 0.0,
         advection: str = "semi-lagrangian",
+        viscosity: str = "explicit",
     ):
         name = self.name
         nx = validate.integer(name, "nx", nx, ge=1, why="cells along x")
@@ -883,6 +1164,7 @@ class Incompressible2D(Stepper):
         self.density = validate.flag(name, "density", density)
         self.profile = validate.choice(name, "profile", profile, PROFILES)
         self.advection = validate.choice(name, "advection", advection, ADVECTIONS)
+        self.viscosity = validate.choice(name, "viscosity", viscosity, VISCOSITIES)
         self.boundaries = self._sides(boundaries)
         self.sides = np.array([SIDES.index(s) for s in self.boundaries], dtype=np.int64)
         # a lid moves along its side: bottom/top lids move in +x, left/right lids in +y
@@ -911,6 +1193,9 @@ class Incompressible2D(Stepper):
             values.append(inflow_speed)
         self.param_names, self.param_values = tuple(names), tuple(values)
         self.check_params(np.array(values))
+        if self.viscosity == "implicit":
+            self._laplacian = self.geometry.velocity_laplacian()
+            self._viscous_factors(nu)
         px, py = self.sides[0] == PERIODIC, self.sides[2] == PERIODIC
         self._geo_u = np.array([0.0, nx, px, 1.0, ny, py])
         self._geo_v = np.array([1.0, nx, px, 0.0, ny, py])
@@ -958,20 +1243,21 @@ class Incompressible2D(Stepper):
                    profile="parabolic", obstacle="box", density=True, buoyancy=0.5)
 
     @classmethod
-    def benchmark_scene(cls, n: int) -> Incompressible2D:
+    def benchmark_scene(cls, n: int, viscosity: str = "explicit") -> Incompressible2D:
         """The wake behind a cylinder in a channel of 2n × n cells, with smoke."""
         n = validate.integer(cls.name, "n", n, ge=4)
         return cls(nx=2 * n, ny=n, length=2.0, dt=0.5 / n, nu=0.001,
                    boundaries="inflow outflow slip slip", obstacle="cylinder", density=True,
-                   buoyancy=0.1)
+                   buoyancy=0.1, viscosity=viscosity)
 
     def check_params(self, p: np.ndarray) -> None:
         nu = validate.number(self.name, "nu", p[0], ge=0, why="the kinematic viscosity")
-        if nu * self.dt / self.h**2 > MAX_DIFFUSION:
+        if self.viscosity == "explicit" and nu * self.dt / self.h**2 > MAX_DIFFUSION:
             raise ValueError(
                 f"{self.name}: dt = {self.dt:g} with nu = {nu:g} is beyond the explicit "
                 f"viscosity's stability limit: dt ≤ h²/(4 nu) = "
-                f"{MAX_DIFFUSION * self.h**2 / nu:.6g} (h = {self.h:g})")
+                f"{MAX_DIFFUSION * self.h**2 / nu:.6g} (h = {self.h:g}); or "
+                "viscosity=\"implicit\", which has no such limit")
         if self.has_inflow:
             speed = abs(float(p[-1])) * self._peak_profile
             if speed * self.dt / self.h > MAX_COURANT:
@@ -1042,15 +1328,41 @@ class Incompressible2D(Stepper):
                 real.type(self.dt), real.type(self.dt / self.h), real.type(self.dt / self.h**2),
                 self.sides, self.lid.astype(real), g.ukind, g.vkind, g.uprof.astype(real),
                 g.vprof.astype(real), g.fluid, g.ufree, g.vfree, g.cell_index, self._geo_u,
-                self._geo_v, self._geo_d, g.factors, self.advection == "maccormack")
-        return (full, *constants)
+                self._geo_v, self._geo_d, g.factors, self.advection == "maccormack",
+                self.viscosity == "implicit", g.uidx, g.vidx)
+        if self.viscosity == "implicit":
+            vfac = self._viscous_factors(float(np.real(p[0])))
+        else:
+            vfac = _no_factors()
+        return (full, *constants, vfac)
+
+    def _viscous_factors(self, nu: float) -> tuple[np.ndarray, ...]:
+        """The implicit viscous step's factors of I − kd A (kd = ν Δt/h², A the Laplacian of
+        the free faces) and A's CSR arrays: factorised on construction and again when a call
+        brings another ν (the last one is kept)."""
+        cached = self.__dict__.get("_viscous")
+        if cached is not None and cached[0] == nu:
+            return cached[1]
+        a = self._laplacian
+        if a.shape[0] == 0:  # no free face: nothing to solve
+            factors = _no_factors()
+        else:
+            kd = self.dt / self.h**2 * nu
+            factors = (*_lu_factors(sp.identity(a.shape[0]) - kd * a),
+                       a.indptr.astype(np.int64), a.indices.astype(np.int64),
+                       a.data.astype(np.float64))
+        self._viscous = (nu, factors)
+        return factors
 
     def _work(self, dtype: np.dtype, adjoint: bool = False) -> tuple:
         """The forward step's fields: u, v, ρ; their padded step inputs; u, v padded after the
         advection, the advected ρ; the pressure solve's right-hand side, solution and scratch;
-        the padded semi-Lagrangian results (MacCormack). With ``adjoint``, also the reverse
-        step's cotangents: of u, v, ρ, of the padded u, v, ρ, of the pressure and of the padded
-        semi-Lagrangian results. All zero."""
+        the padded semi-Lagrangian results (MacCormack; the implicit viscous step's scratch
+        after the advection); the implicit viscous step's right-hand side, solution and two
+        scratch vectors (empty when explicit). With ``adjoint``, also the reverse step's
+        cotangents: of u, v, ρ, of the padded u, v, ρ, of the pressure and of the padded
+        semi-Lagrangian results; the viscous step's weights for u and v and the cotangent of
+        the forces on v. All zero."""
         nx, ny = self.nx, self.ny
         solve = np.result_type(dtype, np.float64)
 
@@ -1065,11 +1377,15 @@ class Incompressible2D(Stepper):
         def pressure():
             return np.zeros(self._fluid_cells, solve)
 
+        free = int(self.geometry.ufree.sum() + self.geometry.vfree.sum())
+        viscous = [np.zeros(free if self.viscosity == "implicit" else 0, solve)
+                   for _ in range(4)]
         work = (*fields(), *padded(), *padded()[:2], np.zeros((nx, ny), dtype), pressure(),
-                pressure(), pressure(), *padded())
+                pressure(), pressure(), *padded(), *viscous)
         if not adjoint:
             return work
-        return work, (*fields(), *padded(), pressure(), *padded())
+        return work, (*fields(), *padded(), pressure(), *padded(), *fields()[:2],
+                      np.zeros((nx, ny + 1), dtype))
 
     def _forward(self, states, n, ctrl, p):
         ins_forward(states, n, ctrl, *self._kernel_args(states.dtype, p),

@@ -162,6 +162,115 @@ def test_gradcheck_passes_for_state_controls_and_parameters(which):
     assert not failed, failed
 
 
+# ------------------------------------------------------------------ implicit viscosity
+def test_the_implicit_viscous_matrix_is_symmetric_for_every_kind_of_side():
+    for boundaries in SCENES:
+        s = scene(boundaries, obstacle="box", viscosity="implicit")
+        a = s.geometry.velocity_laplacian()
+        assert a.shape[0] == s.geometry.ufree.sum() + s.geometry.vfree.sum()
+        assert abs(a - a.T).max() == 0.0, boundaries
+
+
+@pytest.mark.parametrize("boundaries", SCENES)
+def test_implicit_and_explicit_steps_differ_at_second_order_in_the_viscosity(boundaries):
+    """One step from the same state: backward and forward Euler differ by kd² Δ_h² u, so
+    halving ν quarters the difference, for every kind of side: the implicit step's matrix is
+    the explicit step's Laplacian, ghost layers, copies, mirrors, lids and inflow included."""
+    u = scene(boundaries, obstacle="box", density=True).random_state(np.random.default_rng(8), 2)
+
+    def gap(nu: float) -> float:
+        out = [scene(boundaries, obstacle="box", density=True, nu=nu, viscosity=v).rollout(u, 1)
+               for v in ("explicit", "implicit")]
+        return float(np.abs(out[0] - out[1]).max())
+
+    ratio = gap(0.02) / gap(0.01)
+    assert 3.5 < ratio < 4.5, ratio
+
+
+@pytest.mark.parametrize("boundaries", SCENES)
+def test_the_implicit_adjoint_is_the_transposed_tangent(boundaries):
+    for obstacle in (None, "box"):
+        s = scene(boundaries, density=True, obstacle=obstacle, viscosity="implicit", nu=0.5)
+        assert dot_product_error(s) < 1e-12, obstacle
+        out = s.rollout(s.random_state(np.random.default_rng(9), 2), 3)
+        assert np.abs(s.divergence(out)).max() < 1e-11
+    s = scene(boundaries, density=True, viscosity="implicit", advection="maccormack")
+    assert dot_product_error(s, steps=4) < 1e-12
+
+
+@pytest.mark.parametrize("which", ["inflow", "cavity"])
+def test_gradcheck_passes_with_implicit_viscosity(which):
+    """ν Δt/h² = 2.56 and 1.44, far beyond the explicit step's limit of ¼."""
+    s = {
+        "inflow": Incompressible2D(nx=8, ny=6, dt=0.02, nu=2.0, boundaries="inflow outflow wall "
+                                   "wall", profile="parabolic", obstacle="box", density=True,
+                                   buoyancy=0.5, viscosity="implicit"),
+        "cavity": Incompressible2D(nx=6, ny=6, dt=0.04, nu=1.0, viscosity="implicit"),
+    }[which]
+    rows = check_stepper(s, steps=12, seed=4)
+    assert {r.wrt for r in rows} >= {"state", "controls", *s.param_names}
+    failed = [r for r in rows if not r.passed]
+    assert not failed, failed
+
+
+def shear_mode(n: int, nu: float, dt: float, steps: int, viscosity: str) -> tuple[float, float]:
+    """A channel (periodic in x, no-slip walls at y = 0 and 1) holding u = sin(π y): advection
+    carries it along itself unchanged, the pressure stays zero, and the viscous step scales it
+    by its discrete eigenvalue. The amplitude after ``steps`` and that eigenvalue's power."""
+    s = Incompressible2D(nx=4, ny=n, length=4.0 / n, dt=dt, nu=nu,
+                         boundaries="periodic periodic wall wall", viscosity=viscosity)
+    u = np.zeros(s.state_shape(1))
+    u[0, 0, :, :n] = 0.5 * np.sin(np.pi * (np.arange(n) + 0.5) / n)
+    out = s.rollout(u, steps)[0, 0, :, :n] / u[0, 0, :, :n]
+    assert np.ptp(out) < 1e-12  # still the same mode
+    kd, lam = nu * dt * n**2, 4.0 * np.sin(np.pi / (2 * n)) ** 2
+    factor = 1.0 / (1.0 + kd * lam) if viscosity == "implicit" else 1.0 - kd * lam
+    return float(out.mean()), factor**steps
+
+
+def test_the_shear_mode_of_a_channel_decays_by_the_discrete_factor_and_converges():
+    """Each step multiplies the mode by 1/(1 + kd λ) (implicit) or 1 − kd λ (explicit), λ the
+    discrete Laplacian's eigenvalue 4 sin²(π/2n); backward Euler converges at first order in
+    Δt to the space-discrete decay e^{−ν λ n² t} (measured from ν Δt/h² = 1.28, five times the
+    explicit limit: errors 7.2e-3, 3.7e-3, 1.8e-3), which is 9.7e-4 from e^{−ν π² t}."""
+    nu, t, n = 0.1, 0.5, 16
+    semi_discrete = np.exp(-nu * 4 * n**2 * np.sin(np.pi / (2 * n)) ** 2 * t)
+    errors = []
+    for steps in (10, 20, 40):
+        amp, exact = shear_mode(n, nu, t / steps, steps, "implicit")
+        assert abs(amp - exact) < 1e-13 * exact
+        errors.append(abs(amp - semi_discrete))
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all((orders > 0.9) & (orders < 1.1)), (errors, orders)
+    assert abs(semi_discrete - np.exp(-nu * np.pi**2 * t)) < 1.2e-3
+    amp, exact = shear_mode(n, nu, 0.0025, 200, "explicit")
+    assert abs(amp - exact) < 1e-13 * exact
+
+
+def test_explicit_and_implicit_viscosity_agree_to_first_order_in_the_time_step():
+    """The Taylor–Green vortex at 16² (ν = 0.05, t = 0.5): the two schemes' results differ by
+    O(Δt), and halving Δt halves the difference."""
+    gaps = []
+    for steps in (8, 16, 32):
+        out = []
+        for viscosity in ("explicit", "implicit"):
+            s = Incompressible2D(nx=16, ny=16, length=2 * np.pi, dt=0.5 / steps, nu=0.05,
+                                 boundaries="periodic periodic periodic periodic",
+                                 viscosity=viscosity)
+            out.append(s.rollout(taylor_green(16, 0.0, 0.05), steps))
+        gaps.append(float(np.abs(out[0] - out[1]).max()))
+    ratios = np.array(gaps[:-1]) / np.array(gaps[1:])
+    assert np.all((ratios > 1.7) & (ratios < 2.3)), (gaps, ratios)
+
+
+def test_implicit_viscosity_lifts_the_viscous_limit_but_not_the_advective_one():
+    s = scene("wall wall wall lid", nu=1.0, viscosity="implicit")  # ν Δt/h² = 1.28
+    u = s.random_state(np.random.default_rng(10), 1)
+    assert np.abs(s.divergence(s.rollout(u, 3, params={"nu": 5.0}))).max() < 1e-11
+    with pytest.raises(ValueError, match="advective limit for the lid"):
+        scene("wall wall wall lid", nu=1.0, viscosity="implicit", dt=0.2)
+
+
 # ------------------------------------------------------------------ accuracy
 def taylor_green(n: int, t: float, nu: float) -> np.ndarray:
     """The decaying Taylor–Green vortex u = sin x cos y, v = −cos x sin y (times e^{−2νt}) on
@@ -280,6 +389,7 @@ def test_an_obstacle_beside_the_inflow_but_off_it_is_accepted():
     ({"boundaries": "wall wall wall roof"}, "each one of wall, slip, lid"),
     ({"obstacle": "sphere"}, "obstacle must be one of 'cylinder', 'box'"),
     ({"advection": "upwind"}, "advection must be one of 'semi-lagrangian', 'maccormack'"),
+    ({"viscosity": "crank"}, "viscosity must be one of 'explicit', 'implicit'"),
     ({"obstacle": np.zeros((6, 8), dtype=bool)}, r"boolean mask of shape \(8, 6\)"),
     ({"nu": float("nan")}, "nu must be a finite number"),
     ({"inflow_speed": float("inf")}, "inflow_speed must be a finite number"),
