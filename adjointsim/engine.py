@@ -189,6 +189,23 @@ def started(out: str | Path) -> bool:
     return any((Path(out) / name).exists() for name in (CONFIG, CHECKPOINT, RESULT))
 
 
+def same_command(problem: Problem | type[Problem], keys: Iterable[str], theirs: dict) -> bool:
+    """Whether ``theirs`` is a config of ``problem``'s command, whose configs have ``keys``:
+    of this version or an earlier one (keys :attr:`Problem.ADDED` since may be missing,
+    :attr:`Problem.RETIRED` ones may be there)."""
+    keys = set(keys)
+    missing = keys - set(theirs) - set(problem.RESUMABLE) - set(problem.ADDED)
+    extra = set(theirs) - keys - set(problem.RETIRED)
+    return not missing and not extra
+
+
+def another_commands(out: Path, what: str | None = None) -> RunExists:
+    """The refusal of a directory that holds no run of this command (``what`` it holds
+    instead; by default another command's config.json)."""
+    return RunExists(f"{out} holds another command's run or other files "
+                     f"({what or 'a config.json of another command'}); choose another --out")
+
+
 @dataclass
 class Claim:
     """What a run directory holds for the run about to start: nothing to keep (``fresh``),
@@ -217,13 +234,9 @@ class RunDir:
         return theirs if isinstance(theirs, dict) else None
 
     def ours(self, theirs: dict) -> bool:
-        """Whether ``theirs`` is a config of this command, of this version or an earlier one
-        (keys :attr:`Problem.ADDED` since may be missing, :attr:`Problem.RETIRED` ones may be
-        there): what ``--overwrite`` may discard and ``--resume`` compares key by key."""
-        p = self.problem
-        missing = set(self.config) - set(theirs) - set(p.RESUMABLE) - set(p.ADDED)
-        extra = set(theirs) - set(self.config) - set(p.RETIRED)
-        return not missing and not extra
+        """Whether ``theirs`` is a config of this command (:func:`same_command`): what
+        ``--overwrite`` may discard and ``--resume`` compares key by key."""
+        return same_command(self.problem, self.config, theirs)
 
     def holds(self) -> bool:
         """Whether the directory holds a run (its config, checkpoint or result)."""
@@ -244,10 +257,7 @@ class RunDir:
                                 "without --resume to start it")
             return Claim()
         if theirs is None or not self.ours(theirs):
-            what = "no readable config.json" if theirs is None else "a config.json of another " \
-                "command"
-            raise RunExists(f"{out} holds another command's run or other files ({what}); "
-                            "choose another --out")
+            raise another_commands(out, "no readable config.json" if theirs is None else None)
         if overwrite:
             return Claim(discard=True)
         differ = differing(self.config, theirs, self.free)

@@ -73,13 +73,14 @@ def _level(args: argparse.Namespace, task: str) -> float | None:
 
 def run(args: argparse.Namespace) -> int:
     from adjointsim.errors import UserError
-    from adjointsim.train.control import TASKS, ControlConfig, train_controller
+    from adjointsim.train.control import TASKS, ControlConfig, Controller, train_controller
 
     values = overrides(args, ControlConfig)
     values["scene"] = scene_of(args)
     if args.out is not None:
         values["out"] = str(args.out)
-    recorded = resumed(args, lambda: _out(ControlConfig.load(args.config, **values)))
+    recorded = resumed(args, lambda: _out(ControlConfig.load(args.config, **values)),
+                       Controller, ControlConfig)
     task = args.task or (recorded or {}).get("task")
     if task is None:
         raise UserError(f"the task is needed: adjointsim control TASK ({', '.join(TASKS.names())}"

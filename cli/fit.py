@@ -75,11 +75,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from adjointsim import parallel
     from adjointsim.files import write_json
-    from adjointsim.fit_run import FitConfig, run_fit
+    from adjointsim.fit_run import FitConfig, FitRun, run_fit
 
     parallel.set_threads(args.threads)
-    cfg = run_config(args, FitConfig, {**overrides(args, FitConfig), "scene": scene_of(args)},
-                     _default_out)
+    values = {**overrides(args, FitConfig), "scene": scene_of(args)}
+    cfg = run_config(args, FitRun, FitConfig, values, _default_out)
     out = args.out or _default_out(cfg)
     summary = run_fit(cfg, out, resume=args.resume, overwrite=args.overwrite,
                       progress=args.progress, plots=args.plots)

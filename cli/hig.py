@@ -49,10 +49,10 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.train.hig_problems import HigConfig, train_run
+    from adjointsim.train.hig_problems import HigConfig, HigRun, train_run
 
-    cfg = run_config(args, HigConfig, {**overrides(args, HigConfig), "scene": scene_of(args)},
-                     _default_out)
+    values = {**overrides(args, HigConfig), "scene": scene_of(args)}
+    cfg = run_config(args, HigRun, HigConfig, values, _default_out)
     out = args.out or _default_out(cfg)
     result = train_run(cfg, out, resume=args.resume, overwrite=args.overwrite,
                        progress=args.progress)

@@ -92,13 +92,17 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     return cfgs, results
 
 
-def resumed(args: argparse.Namespace, default_out: Callable[[], Path]) -> dict | None:
+def resumed(args: argparse.Namespace, default_out: Callable[[], Path], problem: type,
+            cls: type) -> dict | None:
     """With ``--resume``: the configuration the run to continue recorded (its ``config.json``
     in ``--out``, else in ``default_out()``; with ``--seeds``, the first member's there), for
     :meth:`~adjointsim.run.Config.load` to lay the flags given over. So ``--resume --out DIR``
     alone continues a run as it was started, and a flag beside it changes only its own key
     (the engine names a key that a run cannot change when continued). None without
-    ``--resume``, or where no run is recorded (the engine then says so)."""
+    ``--resume``, or where no run is recorded (the engine then says so); a run of another
+    command than ``problem`` (an engine Problem with configs ``cls``) is refused."""
+    from adjointsim.engine import another_commands, same_command
+
     if not args.resume:
         return None
     out = args.out if args.out is not None else default_out()
@@ -108,19 +112,22 @@ def resumed(args: argparse.Namespace, default_out: Callable[[], Path]) -> dict |
             theirs = json.loads((folder / "config.json").read_text())
         except (OSError, ValueError, UnicodeDecodeError):
             continue
-        if isinstance(theirs, dict):
-            return theirs
+        if not isinstance(theirs, dict):
+            continue
+        if not same_command(problem, (f.name for f in dataclasses.fields(cls)), theirs):
+            raise another_commands(folder)
+        return theirs
     return None
 
 
-def run_config(args: argparse.Namespace, cls: type, values: dict[str, Any],
+def run_config(args: argparse.Namespace, problem: type, cls: type, values: dict[str, Any],
                default_out: Callable[[Any], Path], fresh: tuple[str, ...] = ()) -> Any:
-    """A command's config: the ``--config`` file, then the flags given (``values``, None for
-    one not given), over the defaults, or with ``--resume`` over the run's recorded
-    configuration (:func:`resumed`; ``default_out(config)`` is where the run lives when
-    ``--out`` is not given). The ``fresh`` keys hold for one invocation (a cap on its updates):
-    they take their defaults, not the record's."""
-    recorded = resumed(args, lambda: default_out(cls.load(args.config, **values)))
+    """A command's config (``cls``, of the engine Problem ``problem``): the ``--config`` file,
+    then the flags given (``values``, None for one not given), over the defaults, or with
+    ``--resume`` over the run's recorded configuration (:func:`resumed`; ``default_out(config)``
+    is where the run lives when ``--out`` is not given). The ``fresh`` keys hold for one
+    invocation (a cap on its updates): they take their defaults, not the record's."""
+    recorded = resumed(args, lambda: default_out(cls.load(args.config, **values)), problem, cls)
     if recorded is not None:
         recorded = {k: v for k, v in recorded.items() if k not in fresh}
     return cls.load(args.config, recorded=recorded, **values)

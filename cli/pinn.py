@@ -57,7 +57,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from adjointsim.train import pinn
 
-    cfg = run_config(args, pinn.PinnConfig, overrides(args, pinn.PinnConfig), _default_out)
+    cfg = run_config(args, pinn.PinnRun, pinn.PinnConfig, overrides(args, pinn.PinnConfig),
+                     _default_out)
     name = _name(cfg)
     out = args.out or _default_out(cfg)
     result = pinn.train_run(cfg, out, resume=args.resume, progress=args.progress,

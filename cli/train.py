@@ -55,7 +55,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from adjointsim.train.trainer import TrainConfig, build_model, describe, train
+    from adjointsim.train.trainer import StepperRun, TrainConfig, build_model, describe, train
 
     values = overrides(args, TrainConfig)
     values["scene"] = scene_of(args)  # must agree with the dataset's scene
@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--curriculum {text!r} is not a list of stages m:lr, e.g. "
                             '"1:1e-4,2:1e-5"') from None
     # a run stopped by --max-iterations goes on to its end unless a new cap is given
-    cfg = run_config(args, TrainConfig, values, lambda c: Path(c.out), fresh=("max_iterations",))
+    cfg = run_config(args, StepperRun, TrainConfig, values, lambda c: Path(c.out),
+                     fresh=("max_iterations",))
     out = Path(cfg.out)
     if args.seeds:
         from adjointsim.train.ensemble import train_ensemble

@@ -146,3 +146,16 @@ def test_a_run_stopped_by_its_iteration_cap_resumes_to_its_end(tiny, tmp_path, c
         capsys.readouterr().err
     result = json.loads((out / "result.json").read_text())
     assert result["iterations"] > 1 and result["max_iterations"] == 0
+
+
+@pytest.mark.parametrize("command", ["train", "hig", "pinn", "fit"])
+def test_resume_of_another_commands_run_is_refused_by_name(command, tmp_path, capsys):
+    """The recorded configuration of another command is not taken for this one's (a train
+    run would otherwise look for the default dataset, a hig run for its problem)."""
+    out = tmp_path / "control-run"
+    assert main(["control", "cartpole", "--epochs", "1", "--train", "4", "--test", "4",
+                 "--batch", "4", "--no-progress", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main([command, "--resume", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "holds another command's run" in err, err
