@@ -86,7 +86,7 @@ def test_unknown_problem_and_size_with_an_unknown_config_get_placeholders(tiny, 
         f.attrs["config"] = "{}"
 
     message = _damaged(tiny, tmp_path, edit)
-    assert "its `problem` attribute is 'heat', not one of ['kolmogorov', 'ks']" in message
+    assert "its `problem` attribute is 'heat', not one of ['karman', 'kolmogorov', 'ks']" in message
     assert "`adjointsim data PROBLEM --size SIZE --out" in message
 
     def edit(f):
