@@ -1126,11 +1126,11 @@ class Incompressible2D(Stepper):
         "profile": Choice(PROFILES),
         "obstacle": Choice((None, "box")),
         "density": Choice((False, True)),
-        "viscosity": Choice(VISCOSITIES),
         "nu": Range(0.005, 0.05),
         "buoyancy": Range(-1.0, 1.0),
         "inflow_speed": Range(0.5, 1.5),
         "dt": Range(0.01, 0.05),
+        "viscosity": Choice(VISCOSITIES),
     }
 
     def __init__(
