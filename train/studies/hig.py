@@ -89,7 +89,9 @@ def collect(out: Path, size: str, seeds: int | None = None) -> list[dict]:
             rows.append({**cell, "wall_s": last["wall_s"], "updates": last["update"],
                          "test_loss": last["test_loss"] if math.isfinite(last["test_loss"])
                          else None, "diverged": not math.isfinite(last["test_loss"]),
-                         "loss_at": {str(m): loss_at(history, m) for m in cell["marks"]}})
+                         # the marks it has reached
+                         "loss_at": {str(m): loss_at(history, m) for m in cell["marks"]
+                                     if m <= last["wall_s"]}})
     return rows
 
 
@@ -128,9 +130,10 @@ def table(rows: list[dict]) -> str:
             rs = [r for r in mine if r["optimizer"] == opt]
             if not rs:
                 continue
-            at = [[r["loss_at"].get(str(m)) for r in rs] for m in marks]
-            at = [[math.inf if v is None else v for v in col] for col in at]
-            body.append([opt, str(len(rs))] + [_fmt(col) for col in at]
+            at = [[r["loss_at"].get(str(m), "-") for r in rs] for m in marks]
+            # "-": a mark not reached by a run still going (rows of collect)
+            at = [[math.inf if v is None else v for v in col if v != "-"] for col in at]
+            body.append([opt, str(len(rs))] + [_fmt(col) if col else "-" for col in at]
                         + [_fmt([_final(r) for r in rs]),
                            f"{median(r['updates'] for r in rs):.0f}"])
         widths = [max(len(x[i]) for x in [head, *body]) for i in range(len(head))]
@@ -144,8 +147,12 @@ def table(rows: list[dict]) -> str:
 
 
 def _verdict(problem: str, rows: list[dict]) -> str:
-    """HIG against Adam and GN per seed at the last mark (the budget: the same wall-clock)."""
-    mark = str(rows[0]["marks"][-1])
+    """HIG against Adam and GN per seed at the last mark every run has reached (the budget,
+    once they have finished: the same wall-clock)."""
+    reached = [m for m in rows[0]["marks"] if all(str(m) in r["loss_at"] for r in rows)]
+    if not reached:
+        return ""
+    mark = str(reached[-1])
     by = {(r["optimizer"], r["seed"]): r["loss_at"][mark] for r in rows}
     by = {k: math.inf if v is None else v for k, v in by.items()}
     seeds = sorted({r["seed"] for r in rows})

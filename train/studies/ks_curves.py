@@ -182,6 +182,10 @@ def table(rows: list[dict]) -> str:
         pct = 100 * u / max(paper.values())
         lines.append(f"{u:>8} {pct:7.2f}  " + "  ".join(f"{c:>21}" for c in cols)
                      + f"  {order}/{len(seeds)}")
+    for m in modes:  # a study still going: each mode's last point, reached or not by the others
+        last = max(u for u, v in by[m].items() if len(v) == len(seeds))
+        e = np.array([by[m][last][s] for s in seeds])
+        lines.append(f"{m} at its last point, {last} updates: {np.mean(e):.3e} ± {np.std(e):.2e}")
     lines.append("paper (80 epochs):  " + "  ".join(f"{m} {PAPER_ERRORS[m]:.1e}" for m in modes))
     lines.append("paper updates: " + ", ".join(f"{m} {paper[m]:,}" for m in modes))
     return "\n".join(lines)
