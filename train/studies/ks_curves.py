@@ -213,8 +213,9 @@ def plot(rows: list[dict], path: Path) -> None:
             us = sorted(u for u in pts if seed in pts[u])
             ax.plot(us, [pts[u][seed] for u in us], color=colours[mode], lw=0.7, alpha=0.5)
         full = sorted(u for u in pts if len(pts[u]) == len(seeds))
-        ax.plot(full, [np.mean(list(pts[u].values())) for u in full], color=colours[mode],
-                lw=2, label=f"{mode}, mean of {len(seeds)} seeds")
+        if full:  # markers: a curve of one point so far shows too
+            ax.plot(full, [np.mean(list(pts[u].values())) for u in full], color=colours[mode],
+                    lw=2, marker="o", ms=3, label=f"{mode}, mean of {len(seeds)} seeds")
         ax.axhline(PAPER_ERRORS[mode], color=colours[mode], ls="--", lw=1,
                    label=f"{mode}, paper (80 epochs)")
     paper = max(r["paper_updates"] for r in rows)
