@@ -75,7 +75,22 @@ def on_config(config, **kwargs):
     python = handlers.setdefault("python", {})
     python["paths"] = [str(_installed_layout())]
     config.extra_css.append(STYLESHEET)
+    _every_result_in_the_nav(config.nav)
     return config
+
+
+def _every_result_in_the_nav(nav: list) -> None:
+    """Each page under ``docs/results/`` that the Results section of ``mkdocs.yml`` does not
+    name joins it, titled by its first heading (else its file name): a study's page committed
+    without a nav entry is still reachable from the menu."""
+    section = next(item["Results"] for item in nav if isinstance(item, dict) and "Results" in item)
+    named = {next(iter(entry.values())) for entry in section if isinstance(entry, dict)}
+    for page in sorted((ROOT / "docs" / "results").rglob("*.md")):
+        path = page.relative_to(ROOT / "docs").as_posix()
+        if path not in named:
+            heading = re.search(r"^# (.+)$", page.read_text(encoding="utf-8"), re.M)
+            title = heading[1].strip() if heading else page.stem.replace("-", " ").capitalize()
+            section.append({title: path})
 
 
 def on_files(files, config, **kwargs):
