@@ -1,6 +1,6 @@
 """Speed of the staggered-grid incompressible Navier–Stokes solver: forward and gradient.
 
-    python benchmarks/incompressible.py [--n 32 64] [--batch 1] [--steps 50] [--repeats 3]
+    python benchmarks/incompressible.py [--n 32 64] [--batch 1] [--steps 50] [--repeats 7]
                                         [--checkpoint 8] [--viscosity explicit] [--cpu]
                                         [--json PATH]
 
@@ -9,7 +9,7 @@ of 2n × n cells (inflow left, outflow right, free-slip walls) with an advected 
 buoyancy, float64, one solver thread, started from the flow after 20 steps (``--viscosity
 implicit``: the same scene with backward-Euler viscosity; key ``viscosity``). Per row, median
 wall time (``--cpu``: the thread's CPU time, which other processes on a shared machine inflate
-much less) over the repeats of
+much less) over the repeats, which run the three in turn, of
   forward_s               rollout(u0, steps)
   gradient_s              vjp(u0, steps, ū, wrt_params=True): the forward sweep and the
                           adjoint, every state kept
@@ -41,14 +41,19 @@ from adjointsim import get, parallel  # noqa: E402
 NAME = "incompressible2d-sl"
 
 
-def median_time(fn, repeats: int, clock) -> float:
-    fn()  # compiled (or loaded from the cache) and warm before the clock starts
-    times = []
+def median_times(fns: list, repeats: int, clock) -> list[float]:
+    """The median time of each of ``fns`` over ``repeats`` rounds that run them in turn: a
+    change of load on a shared machine then reaches all of them alike, not one more than the
+    others (the ratios stay fair)."""
+    for fn in fns:
+        fn()  # compiled (or loaded from the cache) and warm before the clock starts
+    times = [[] for _ in fns]
     for _ in range(repeats):
-        t = clock()
-        fn()
-        times.append(clock() - t)
-    return float(np.median(times))
+        for fn, kept in zip(fns, times):
+            t = clock()
+            fn()
+            kept.append(clock() - t)
+    return [float(np.median(kept)) for kept in times]
 
 
 def peak_mib(fn) -> float:
@@ -72,12 +77,15 @@ def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, viscosity
     def gradient(k: int, budget: int | None) -> None:
         stepper.vjp(u0, k, w, wrt_params=True, checkpoint=budget)
 
+    forward_s, gradient_s, checkpoint_s = median_times(
+        [lambda: stepper.rollout(u0, steps), lambda: gradient(steps, None),
+         lambda: gradient(steps, checkpoint)], repeats, clock)
     return {
         "solver": NAME, "nx": stepper.nx, "ny": stepper.ny, "batch": batch, "steps": steps,
         "viscosity": viscosity,
-        "forward_s": median_time(lambda: stepper.rollout(u0, steps), repeats, clock),
-        "gradient_s": median_time(lambda: gradient(steps, None), repeats, clock),
-        "gradient_checkpoint_s": median_time(lambda: gradient(steps, checkpoint), repeats, clock),
+        "forward_s": forward_s,
+        "gradient_s": gradient_s,
+        "gradient_checkpoint_s": checkpoint_s,
         "checkpoint": checkpoint,
         "peak_mib": peak_mib(lambda: gradient(steps, checkpoint)),
         "peak_mib_4x": peak_mib(lambda: gradient(4 * steps, checkpoint)),
@@ -92,7 +100,7 @@ def main() -> None:
                         help="channel heights (the channel is 2n × n cells)")
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--steps", type=int, default=50)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--checkpoint", type=int, default=8)
     parser.add_argument("--viscosity", choices=("explicit", "implicit"), default="explicit")
     parser.add_argument("--cpu", action="store_true", help="thread CPU time instead of wall time")
