@@ -21,8 +21,8 @@ from adjointsim.solvers.incompressible2d import MAX_COURANT, Incompressible2D
 
 from ..problems import STEPPERS, Problem
 
-#: the channel's length and height, the cylinder's diameter and the inflow speed
-LENGTH, HEIGHT, DIAMETER, SPEED = 2.0, 1.0, 0.25, 1.0
+#: the channel's length (its height is 1), the cylinder's diameter and the inflow speed
+LENGTH, DIAMETER, SPEED = 2.0, 0.25, 1.0
 
 
 class TooFastError(FloatingPointError):
