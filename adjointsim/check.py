@@ -25,7 +25,9 @@ undecidable when the estimate itself exceeds a limit (``dot_ref``/``fd_ref``). `
 8e-8 in float64, so the dot-product bound never exceeds 8e-7: an adjoint error of relative size
 1e-6 is always caught. The one exception: an undecidable central-FD reference does not fail a
 row whose exact (complex-step) dot-product test and Taylor test passed; ``reason`` then notes
-it. The step sequences start from a 10 % change of the trajectory (scaled by the
+it. The step sequences start from a 10 % change of the trajectory (the stepper's
+``check_perturbation``; 3 % for the semi-Lagrangian flows, whose interpolation switches cells)
+(scaled by the
 rollout's measured sensitivity: large steps keep the differences above round-off where the
 state's influence decays, and the extrapolation skips steps outside the h² range) and halve
 eleven times, so a long chaotic rollout is also probed where its Taylor expansion holds.
@@ -58,8 +60,6 @@ TOLERANCES: dict[str, dict[str, float]] = {
 #: a difference passes within this many estimated reference errors
 REF_SAFETY = 10.0
 _H_COMPLEX_STEP = 1e-100
-#: largest relative change of the trajectory the finite differences and Taylor test start from
-_REL_PERTURBATION = 0.1
 #: halving steps of the Ridders tableau and the Taylor sequence (they share the rollouts)
 _LEVELS = 11
 #: the two step sequences h₀ c 2⁻ʲ (c = 1 and a ratio far from a power of two)
@@ -199,7 +199,7 @@ def check_stepper(
             growth = max(1.0, float(np.max(np.linalg.norm(
                 tangent_traj.reshape(len(tangent_traj), -1), axis=1))) / max(first, 1e-300))
             noise_phi *= growth
-        h0 = _REL_PERTURBATION / max(sensitivity, 1.0)
+        h0 = stepper.check_perturbation / max(sensitivity, 1.0)
 
         # Two interleaved sequences of halving steps: each gives Ridders' tableaus an
         # independent extrapolation, and how far the two disagree measures the round-off the

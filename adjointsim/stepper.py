@@ -134,6 +134,10 @@ class Stepper:
     #: False when the kernels cannot run on complex arrays (the checker then uses
     #: Richardson-extrapolated finite differences as the tangent model)
     complex_step: ClassVar[bool] = True
+    #: the change of the trajectory the checker's difference steps start from; a piecewise-
+    #: smooth map (interpolation at backtraced points) lowers it so that the largest steps
+    #: rarely cross a switch, where a difference stops being a derivative
+    check_perturbation: ClassVar[float] = 0.1
 
     # Set by subclass constructors.
     grid_shape: tuple[int, ...]
