@@ -87,6 +87,10 @@ class Study:
     study's other rows hold there. Either way a row holds some result besides its cell's keys,
     and rows are adopted only once the study's ``report`` has run on them.
 
+    ``so_far(out, size, seeds)``: the rows of the cells under the study directory ``out`` that
+    have started, finished or not (what a running or stopped study has reached, for
+    :func:`so_far`); studies whose cells run for hours declare it.
+
     ``pack`` (with ``run_group``): the keys in which cells may differ and still train together
     as one ensemble (``("seed",)``, say); the runner submits one task per group of cells equal
     in every other key, and ``run_group(cells, run_dirs)`` returns their rows in order. A group
@@ -101,6 +105,7 @@ class Study:
     row_keys: RowKeys | Callable[[dict], RowKeys] | None = None
     pack: tuple[str, ...] = ()
     run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
+    so_far: Callable[[Path, str, int | None], list[dict]] | None = None
 
     def expected_keys(self, cell: dict) -> RowKeys | None:
         """The declared result keys of ``cell``'s row, or None if the study declares none."""
@@ -549,6 +554,27 @@ def _fits(value: Any, types: tuple[type, ...]) -> bool:
 def _short(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
+
+
+def so_far(study_name: str, out: str | Path, size: str, seeds: int | None = None) -> list[dict]:
+    """The rows of every started cell of a study in ``out``, finished or not, written to
+    ``OUT/rows-so-far.json`` (``rows.json`` holds finished rows only, which ``--reuse``
+    adopts); the report of them is :func:`write_report`'s."""
+    study = get_study(study_name)
+    if size not in study.sizes:
+        raise ValueError(f"unknown study size {size!r} for {study_name}; "
+                         f"choose from {list(study.sizes)}")
+    if study.so_far is None:
+        able = sorted(name for name, s in _STUDIES.items() if s.so_far is not None)
+        raise UserError(f"the {study_name} study cannot tabulate unfinished cells (--so-far); "
+                        f"run it to the end, or use --so-far with {', '.join(able)}")
+    out = Path(out).resolve()
+    rows = study.so_far(out, size, seeds)
+    if not rows:
+        raise UserError(f"{out} holds no started cell of the {study_name} study (size {size}); "
+                        "give the --out and --size it runs with")
+    write_text(out / "rows-so-far.json", dumps(rows))
+    return rows
 
 
 def write_report(study_name: str, rows: list[dict], out: Path) -> str:

@@ -65,6 +65,10 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reuse", type=Path, default=None, metavar="ROWS",
                    help="finished rows of an earlier run (its --json or rows.json file, e.g. "
                    "one committed under docs/results/): those cells are not run again")
+    p.add_argument("--so-far", action="store_true",
+                   help="run nothing: tabulate and draw what the study directory holds so far, "
+                   "unfinished cells too (a running or stopped study; ks-curves, stablebptt, "
+                   "hig), the rows in DIR/rows-so-far.json")
     progress_option(p)
     p.set_defaults(size="full")
 
@@ -79,6 +83,12 @@ def run(args: argparse.Namespace) -> int:
     load(args.problem)
     suffix = "" if args.size == "full" else f"-{args.size}"
     out = args.out or Path("runs") / f"study-{args.problem}{suffix}"
+    if args.so_far:
+        rows = runner.so_far(args.problem, out, args.size, args.seeds)
+        print(runner.write_report(args.problem, rows, out.resolve()))
+        if args.json:
+            write_json(args.json, rows)
+        return 0
     failed: list[tuple[str, str]] = []
     try:
         rows = runner.run(args.problem, out, args.size, args.seeds, cluster=args.cluster,

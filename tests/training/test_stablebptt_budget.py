@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from adjointsim.cli import main
 from adjointsim.run import read_history
 from adjointsim.train.studies import stablebptt
 
@@ -27,7 +28,22 @@ def test_collect_tabulates_the_epochs_a_study_has_reached(tmp_path, capsys):
     assert [r["id"] for r in rows] == [cells[0]["id"]]
     assert rows[0]["epochs"] == rows[0]["epochs_planned"] == len(history) == 1
     assert rows[0]["test_loss"] == history[-1]["test_loss"]
-    stablebptt.main([str(tmp_path), "--size", "tiny", "--to", str(tmp_path / "report")])
-    assert json.loads((tmp_path / "report" / "rows.json").read_text())[0]["epochs"] == 1
-    assert "final test loss" in (tmp_path / "report" / "table.txt").read_text()
-    assert (tmp_path / "report" / "stablebptt-cartpole.png").exists()
+    assert main(["study", "stablebptt", "--size", "tiny", "--out", str(tmp_path),
+                 "--so-far"]) == 0
+    assert json.loads((tmp_path / "rows-so-far.json").read_text())[0]["epochs"] == 1
+    assert not (tmp_path / "rows.json").exists()  # --reuse adopts finished rows only
+    assert "final test loss" in (tmp_path / "table.txt").read_text()
+    assert (tmp_path / "stablebptt-cartpole.png").exists()
+    assert "final test loss" in capsys.readouterr().out
+
+
+def test_so_far_names_the_studies_that_can_and_an_empty_directory(tmp_path, capsys):
+    assert main(["study", "stablebptt", "--size", "tiny", "--out", str(tmp_path),
+                 "--so-far"]) == 2
+    err = capsys.readouterr().err
+    assert "holds no started cell of the stablebptt study" in err and "Traceback" not in err
+    assert main(["study", "pinn-poisson", "--size", "tiny", "--out", str(tmp_path),
+                 "--so-far"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot tabulate unfinished cells" in err
+    assert "hig" in err and "ks-curves" in err and "stablebptt" in err

@@ -10,13 +10,12 @@ ends below Adam and GN, and draws the loss-versus-time curves, one panel per pro
 
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 from statistics import median
 
 from adjointsim import engine
-from adjointsim.files import pyplot, save_figure, write_json, write_text
+from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import read_history
 from adjointsim.runner import Study, register_study
 
@@ -208,29 +207,5 @@ def plot(rows: list[dict], out: Path, path: Path) -> None:
     save_figure(fig, path, dpi=120)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Tabulate and draw what a study directory holds so far (a running or stopped study's
-    evaluations too): ``table.txt``, ``hig.png`` and ``rows.json``."""
-    p = argparse.ArgumentParser(prog="python -m adjointsim.train.studies.hig",
-                                description=main.__doc__)
-    p.add_argument("out", type=Path, help="the study's directory (its --out)")
-    p.add_argument("--size", required=True, choices=tuple(SIZES))
-    p.add_argument("--to", type=Path, help="where to write the files (default: OUT)")
-    args = p.parse_args(argv)
-    rows = collect(args.out, args.size)
-    if not rows:
-        raise SystemExit(f"{args.out} holds no evaluation of the {args.size} size yet")
-    to = args.to or args.out
-    write_json(Path(to) / "rows.json", rows)
-    text = table(rows)
-    write_text(Path(to) / "table.txt", text + "\n")
-    plot(rows, args.out, Path(to) / "hig.png")
-    print(text)
-
-
 register_study(Study(name="hig", sizes=tuple(SIZES), cells=cells, run_cell=run_cell,
-                     report=report))
-
-
-if __name__ == "__main__":
-    main()
+                     report=report, so_far=collect))

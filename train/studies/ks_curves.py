@@ -19,12 +19,11 @@ ensemble, and the three ensembles take turns, ``chunk`` updates each, so every c
 together: a study stopped at any time has every mode at about the same update. Each member
 keeps its curve in ``curve.csv`` of its run directory; run again, the study continues every
 run from its checkpoint. The curves so far, finished or not, are tabulated and drawn by
-``python -m adjointsim.train.studies.ks_curves OUT --to DIR``.
+``adjointsim study ks-curves --size paper --out OUT --so-far``.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 from pathlib import Path
@@ -243,24 +242,5 @@ register_study(Study(
     name="ks-curves", sizes=tuple(SIZES), cells=cells, run_cell=run_cell, report=report,
     prepare=prepare,
     row_keys={"updates": int, "paper_updates": int, "rel_error": float, "curve": list},
-    pack=("seed", "mode"), run_group=run_group,
+    pack=("seed", "mode"), run_group=run_group, so_far=collect,
 ))
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Tabulate and draw the curves a study directory holds so far (a running or stopped
-    study's too)."""
-    p = argparse.ArgumentParser(prog="python -m adjointsim.train.studies.ks_curves",
-                                description=main.__doc__)
-    p.add_argument("out", type=Path, help="the study's directory (its --out)")
-    p.add_argument("--size", default="paper", choices=tuple(SIZES))
-    p.add_argument("--to", type=Path, help="where to write the files (default: OUT)")
-    args = p.parse_args(argv)
-    rows = collect(args.out, args.size)
-    if not rows:
-        raise SystemExit(f"{args.out} holds no curve of the {args.size} size yet")
-    print(report(rows, args.to or args.out))
-
-
-if __name__ == "__main__":
-    main()

@@ -23,7 +23,7 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
 * ``budget``: the paper's 1000 epochs for the other two tasks at their hardest levels
   (guidance at control weight 0.001, quantum at target 5), modes R, M and C and R with norm
   clipping, 3 seeds: hours per ensemble on one core, over several sittings (each run resumes
-  from its checkpoint; ``python -m adjointsim.train.studies.stablebptt OUT --size budget``
+  from its checkpoint; ``adjointsim study stablebptt --size budget --out OUT --so-far``
   tabulates and draws the epochs reached so far).
 
 Cells that differ only in the seed and the clipping train together as one ensemble
@@ -33,13 +33,12 @@ member in its own run directory, equal to its separate run.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
 from adjointsim import engine
-from adjointsim.files import pyplot, save_figure, write_json, write_text
+from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import plot_history, read_history
 from adjointsim.runner import Study, register_study
 
@@ -290,23 +289,6 @@ def _plot_levels(rows: list[dict], levels: list, path: Path) -> None:
     save_figure(fig, path, dpi=110)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Tabulate and draw what a study directory holds so far (a running or stopped study's
-    epochs too): ``table.txt``, the curves and ``rows.json``."""
-    p = argparse.ArgumentParser(prog="python -m adjointsim.train.studies.stablebptt",
-                                description=main.__doc__)
-    p.add_argument("out", type=Path, help="the study's directory (its --out)")
-    p.add_argument("--size", required=True, choices=tuple(SIZES))
-    p.add_argument("--to", type=Path, help="where to write the files (default: OUT)")
-    args = p.parse_args(argv)
-    rows = collect(args.out, args.size)
-    if not rows:
-        raise SystemExit(f"{args.out} holds no epoch of the {args.size} size yet")
-    to = args.to or args.out
-    write_json(Path(to) / "rows.json", rows)
-    print(report(rows, to))
-
-
 register_study(Study(
     name="stablebptt",
     sizes=tuple(SIZES),
@@ -315,8 +297,5 @@ register_study(Study(
     report=report,
     pack=("seed", "clip"),
     run_group=run_group,
+    so_far=collect,
 ))
-
-
-if __name__ == "__main__":
-    main()
