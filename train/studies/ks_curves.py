@@ -184,7 +184,9 @@ def table(rows: list[dict]) -> str:
     for m in modes:  # a study still going: each mode's last point, reached or not by the others
         last = max(u for u, v in by[m].items() if len(v) == len(seeds))
         e = np.array([by[m][last][s] for s in seeds])
-        lines.append(f"{m} at its last point, {last} updates: {np.mean(e):.3e} ± {np.std(e):.2e}")
+        with np.errstate(invalid="ignore"):
+            lines.append(f"{m} at its last point, {last} updates: {np.mean(e):.3e} ± "
+                         f"{np.std(e):.2e}")
     lines.append("paper (80 epochs):  " + "  ".join(f"{m} {PAPER_ERRORS[m]:.1e}" for m in modes))
     lines.append("paper updates: " + ", ".join(f"{m} {paper[m]:,}" for m in modes))
     return "\n".join(lines)
