@@ -16,9 +16,12 @@ much less) over the repeats, which run the three in turn, of
   gradient_checkpoint_s   the same holding at most ``--checkpoint`` states (binomial
                           checkpointing: the memory stays flat in the number of steps)
 and ``peak_mib``, the largest memory (tracemalloc) the checkpointed gradient allocates,
-for ``steps`` and for 4 × ``steps`` (``peak_mib_4x``). The optional peer, PhiFlow on the CPU,
-is measured on the same scene when it is installed (keys ``peer``, ``peer_forward_s``,
-``peer_gradient_s``); otherwise the script says so and writes no peer keys.
+for ``steps`` and for 4 × ``steps`` (``peak_mib_4x``). The optional peer, PhiFlow on the CPU
+(``pip install phiflow``; its twin of the scene in ``phiflow_peer.py``), runs the same scene
+from the same state in the same rounds (keys ``peer``, ``peer_forward_s``, ``peer_gradient_s``,
+and ``peer_rel_diff``: the relative L2 difference of its velocity after ``steps`` steps from
+ours, which says the twin is the same flow); ``--peer-repeats`` rounds (it is slow), and
+without PhiFlow the script says so and writes no peer keys.
 ``--json PATH`` writes the rows as a JSON list.
 """
 
@@ -33,8 +36,10 @@ import tracemalloc
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+import phiflow_peer  # noqa: E402
 
 from adjointsim import get, parallel  # noqa: E402
 
@@ -67,7 +72,7 @@ def peak_mib(fn) -> float:
 
 
 def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, viscosity: str,
-        clock) -> dict:
+        clock, peer_repeats: int = 0) -> dict:
     stepper = get(NAME).benchmark_scene(n, viscosity=viscosity)
     rng = np.random.default_rng(0)
     u0 = stepper.rollout(np.zeros(stepper.state_shape(batch)), 20)
@@ -90,7 +95,22 @@ def row(n: int, batch: int, steps: int, repeats: int, checkpoint: int, viscosity
         "peak_mib": peak_mib(lambda: gradient(steps, checkpoint)),
         "peak_mib_4x": peak_mib(lambda: gradient(4 * steps, checkpoint)),
         "state_mib": u0.nbytes / 2**20,
+        **(peer_keys(stepper, u0, w, steps, peer_repeats, clock)
+           if peer_repeats and batch == 1 and viscosity == "explicit" else {}),
     }
+
+
+def peer_keys(stepper, u0: np.ndarray, w: np.ndarray, steps: int, repeats: int,
+              clock) -> dict:
+    """PhiFlow's figures on the same scene (its twin in ``phiflow_peer``)."""
+    from importlib.metadata import version
+
+    peer = phiflow_peer.prepare(stepper, u0, w, steps)
+    forward_s, gradient_s = median_times([peer["forward"], peer["gradient"]], repeats, clock)
+    ours, theirs = stepper.rollout(u0, steps)[:, :2], peer["last"]()[:, :2]
+    return {"peer": f"phiflow {version('phiflow')} (torch, jit_compile, scipy-direct)",
+            "peer_forward_s": forward_s, "peer_gradient_s": gradient_s,
+            "peer_rel_diff": float(np.linalg.norm(theirs - ours) / np.linalg.norm(ours))}
 
 
 def main() -> None:
@@ -103,19 +123,22 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--checkpoint", type=int, default=8)
     parser.add_argument("--viscosity", choices=("explicit", "implicit"), default="explicit")
+    parser.add_argument("--peer-repeats", type=int, default=3,
+                        help="rounds of the PhiFlow peer, where installed (0: none)")
     parser.add_argument("--cpu", action="store_true", help="thread CPU time instead of wall time")
     parser.add_argument("--json", type=Path, help="write the rows here")
     args = parser.parse_args()
+    peer_repeats = args.peer_repeats
     if importlib.util.find_spec("phi") is None:
         print("PhiFlow is not installed: no peer figures (pip install phiflow to add them)")
-    else:
-        print("PhiFlow is installed, but its twin of this scene is not written yet: "
-              "no peer figures")
+        peer_repeats = 0
+    elif args.batch != 1 or args.viscosity != "explicit":
+        print("the PhiFlow twin is of batch 1 and explicit viscosity: no peer figures")
     rows = []
     with parallel.using_threads(1):
         for n in args.n:
             r = row(n, args.batch, args.steps, args.repeats, args.checkpoint, args.viscosity,
-                    time.thread_time if args.cpu else time.perf_counter)
+                    time.thread_time if args.cpu else time.perf_counter, peer_repeats)
             rows.append(r)
             print(f"{r['solver']} {r['nx']}×{r['ny']} B={r['batch']} {r['steps']} steps, "
                   f"{r['viscosity']} viscosity: "
@@ -124,6 +147,13 @@ def main() -> None:
                   f"{r['gradient_checkpoint_s']:.3f} s, peak {r['peak_mib']:.1f} MiB "
                   f"({4 * r['steps']} steps: {r['peak_mib_4x']:.1f} MiB; one state "
                   f"{r['state_mib']:.2f} MiB)", flush=True)
+            if "peer" in r:
+                print(f"  {r['peer']}: forward {r['peer_forward_s']:.3f} s "
+                      f"({r['peer_forward_s'] / r['forward_s']:.0f}× ours), gradient "
+                      f"{r['peer_gradient_s']:.3f} s "
+                      f"({r['peer_gradient_s'] / r['gradient_s']:.0f}× ours); its velocity "
+                      f"after {r['steps']} steps differs from ours by "
+                      f"{r['peer_rel_diff']:.1%} (relative L2)", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
