@@ -149,21 +149,50 @@ def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> None:
     plt.close(fig)
 
 
+#: the signals that stop a run cleanly: Ctrl-C, and the polite kill of ``kill`` and of batch
+#: schedulers (the command line turns SIGTERM into Ctrl-C: :func:`stop_on_sigterm`)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def stop_on_sigterm() -> Iterator[None]:
+    """Within the block, SIGTERM stops the work as Ctrl-C does (a checkpoint, then exit),
+    where it would otherwise kill the process between two checkpoints. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @contextmanager
 def uninterrupted() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) until the block ends, then raise it: an update and the counters
-    that record it happen together, so the checkpoint written on the interrupt resumes without
-    repeating or skipping one. Outside the main thread (a Dask worker's cell) signals cannot be
-    caught, and the block runs as it is."""
+    """Hold a stop signal (Ctrl-C, and SIGTERM under :func:`stop_on_sigterm`) until the block
+    ends, then raise KeyboardInterrupt: an update and the counters that record it happen
+    together, so the checkpoint written on the interrupt resumes without repeating or skipping
+    one. A signal ignored (SIGINT of a job started in the background) stays ignored. Outside
+    the main thread (a Dask worker's cell) signals cannot be caught, and the block runs as it
+    is."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     held: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    previous = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    caught = [s for s, handler in previous.items() if callable(handler)]
+    for s in caught:
+        signal.signal(s, lambda signum, frame: held.append(signum))
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s in caught:
+            signal.signal(s, previous[s])
     if held:
         raise KeyboardInterrupt
 

@@ -18,6 +18,7 @@ from adjointsim import __version__, registry
 from adjointsim.compiling import announce_compiles
 from adjointsim.engine import Saved
 from adjointsim.errors import UserError
+from adjointsim.files import stop_on_sigterm
 
 from .options import resume_command
 
@@ -72,8 +73,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The one error boundary of every command: user errors print ``adjointsim CMD: message``
-    and exit 2, Ctrl-C exits 130 with how to continue, a closed pipe exits quietly, genuine
-    bugs raise."""
+    and exit 2, Ctrl-C (or SIGTERM) exits 130 with how to continue, a closed pipe exits
+    quietly, genuine bugs raise."""
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     if command is None and not {"-h", "--help", "--version"} & set(argv):
@@ -90,7 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         if getattr(args, "progress", True) and not os.environ.get("TQDM_DISABLE"):
             announce_compiles()  # silenced with the progress bars whose stall it explains
-        status = args._command(args)
+        with stop_on_sigterm():  # `kill` or a scheduler's stop: a checkpoint, as Ctrl-C
+            status = args._command(args)
         sys.stdout.flush()
         return status
     except BrokenPipeError:  # `adjointsim ... | head`: the reader has all it wants

@@ -28,15 +28,15 @@ COMMANDS = {
 }
 
 
-def _ctrl_c_at_the_second_update(monkeypatch) -> None:
-    """A real SIGINT in the middle of the second update: the engine holds it until the update
-    ends, then saves the checkpoint and the history."""
+def _ctrl_c_at_the_second_update(monkeypatch, signum: int = signal.SIGINT) -> None:
+    """A real SIGINT (or ``signum``) in the middle of the second update: the engine holds it
+    until the update ends, then saves the checkpoint and the history."""
     real, calls = engine.Single.update, []
 
     def update(self):
         calls.append(1)
         if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signum)
         return real(self)
 
     monkeypatch.setattr(engine.Single, "update", update)
@@ -69,6 +69,20 @@ def test_ctrl_c_prints_a_command_that_finishes_the_run(command, tiny, tmp_path, 
     assert code == 0, capsys.readouterr().err
     result = json.loads((out / "result.json").read_text())
     assert {k: result[k] for k in recorded} == recorded
+
+
+@pytest.mark.parametrize("command", ["control", "hig"])
+def test_sigterm_stops_a_run_as_ctrl_c_does(command, tmp_path, capsys, monkeypatch):
+    """``kill`` (or a batch scheduler's stop) saves the checkpoint too, and leaves SIGTERM as
+    it was once the command returns."""
+    out = tmp_path / "run"
+    _ctrl_c_at_the_second_update(monkeypatch, signal.SIGTERM)
+    assert main([*COMMANDS[command], "--no-progress", "--out", str(out)]) == 130
+    monkeypatch.undo()
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    assert (out / "checkpoint.pt").is_file() and not (out / "result.json").exists()
+    printed = _printed_command(capsys.readouterr().err, command)
+    assert main(printed) == 0 and (out / "result.json").is_file()
 
 
 def test_an_ensembles_printed_command_names_its_seeds(tmp_path, capsys, monkeypatch):
