@@ -12,9 +12,10 @@ target, the smoke's start (empty) and source fixed:
 
 with the gradient from one reverse sweep (:meth:`Stepper.vjp` with the cotangent ρ_n − ρ* on
 the density, zero on the velocity). Two optimisers: the book's plain gradient descent (a fixed
-step, :data:`GD_RATE`) and L-BFGS-B. The initial speed is bounded by h/Δt (Courant number 1,
-the solver's limit for an initial state; the book's PhiFlow has none): gradient descent clips
-to it, L-BFGS-B takes it as bounds.
+step, :data:`GD_RATE`) and L-BFGS-B. The initial speed is bounded by h/Δt (Courant number 1:
+the first step's backtraces cross at most one cell; neither the solver nor the book's PhiFlow
+limits it, and the plume the steps make outruns it): gradient descent clips to it, L-BFGS-B
+takes it as bounds.
 
 Each cell is one optimisation; its row holds the loss after every iteration with the wall
 seconds since the start (numba compiles in an untimed gradient first). The report writes

@@ -59,9 +59,16 @@ which also gives back the advected fields that the parameters' cotangents need. 
 adjoint recomputes the step's advection first (its clamp reads it); an implicit viscous step
 with parameter cotangents solves its forward system once more.
 
-Limits, checked: ν Δt/h² ≤ ¼ (explicit viscosity only) and a Courant number (speed · Δt/h) of at
-most 1 for the lid, the inflow and the initial state: a backtrace then crosses at most one cell
-and cannot pass through a wall or an obstacle one cell thick.
+Limits, checked when the scene is made and when a call overrides the parameters: ν Δt/h² ≤ ¼
+(explicit viscosity only) and a Courant number (speed · Δt/h) of at most 1 for the speeds the
+sides impose, the lid's and the peak inflow's. The state's own speed is not limited, neither the
+state a call is given nor the ones it makes: the semi-Lagrangian step is stable at any Courant
+number (a backtrace is clamped at the box's sides), and flows made from slow starts outrun h/Δt
+(a buoyant plume, or the flow through a channel narrowed by an obstacle, faster than its
+inflow). A bound on the given state would refuse the next step of a stepwise rollout that one
+n-step call makes without complaint; the results of the two are the same bit for bit. Where the
+Courant number exceeds 1 a backtrace may jump a solid one cell thick, which is a loss of
+accuracy, not of stability: :meth:`Incompressible2D.courant_number` reports it.
 """
 
 from __future__ import annotations
@@ -1129,11 +1136,11 @@ class Incompressible2D(Stepper):
         "profile": Choice(PROFILES),
         "obstacle": Choice((None, "box")),
         "density": Choice((False, True)),
+        "viscosity": Choice(VISCOSITIES),
         "nu": Range(0.005, 0.05),
         "buoyancy": Range(-1.0, 1.0),
         "inflow_speed": Range(0.5, 1.5),
         "dt": Range(0.01, 0.05),
-        "viscosity": Choice(VISCOSITIES),
     }
 
     def __init__(
@@ -1270,17 +1277,15 @@ class Incompressible2D(Stepper):
                     "(Courant number 1: the semi-Lagrangian backtrace may cross one cell at "
                     "most)")
 
-    def check_state(self, u: np.ndarray, what: str = "u0") -> np.ndarray:
-        """As :meth:`Stepper.check_state`, and the velocity's Courant number must be ≤ 1."""
-        u = super().check_state(u, what)
-        if u.shape[0]:
-            top = max(np.abs(u[:, 0, :, : self.ny]).max(), np.abs(u[:, 1, : self.nx]).max())
-            if top * self.dt / self.h > MAX_COURANT:
-                raise ValueError(
-                    f"{self.name}: {what} moves at up to {top:.6g}, beyond the advective limit "
-                    f"of dt = {self.dt:g}: the speed must stay ≤ h/dt = "
-                    f"{MAX_COURANT * self.h / self.dt:.6g} (Courant number 1); lower dt")
-        return u
+    def courant_number(self, u: np.ndarray) -> float:
+        """The largest Courant number (speed · Δt / h) of a batch of states (B, C, nx + 1,
+        ny + 1): above 1 a backtrace crosses more than one cell and may jump a solid one cell
+        thick (see the module's notes on limits; the solver does not refuse such states)."""
+        u = np.asarray(u)
+        if not u.shape[0]:
+            return 0.0
+        top = max(np.abs(u[:, 0, :, : self.ny]).max(), np.abs(u[:, 1, : self.nx]).max())
+        return float(top) * self.dt / self.h
 
     def random_state(
         self, rng: np.random.Generator, batch: int = 1, dtype: Any = np.float64
