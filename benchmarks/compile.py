@@ -11,7 +11,18 @@ solvers:
   gradient through the solver's adjoint (WIG), batch 16;
 * ``cartpole-controller``: a StableBPTT-like controller: the tasks' 11k MLP (100 × 2) picks the
   force of a 4-pole cart-pole from its state at each of 100 steps, one solver call per step
-  (mode C's graph: the network sees the state the solver returned), batch 8.
+  (mode C's graph: the network sees the state the solver returned), batch 8;
+* ``pinn-poisson-epoch``: one full-batch epoch of ``adjointsim pinn``'s Poisson problem (its
+  defaults: k = 1, 2500 collocation points, 100 per edge), residual and boundary terms summed,
+  the Laplacian by the forward-Laplacian route (numba kernels: run eager, a graph break);
+* ``hig-oscillators-adam``: an update of ``adjointsim hig oscillators --optimizer adam`` (what
+  the ``compile`` key compiles there): the MLP's controls through 16 steps of the coupled
+  oscillators by the bridge, batch 512.
+
+``--jacobian PATH`` also times the Jacobian of an HIG update (oscillators, its batch of 128):
+the solver's batched adjoint (:meth:`SolverPhysics.jacobian`, one adjoint call over b·d_y
+replicated rollouts) against ``torch.func.vmap(torch.func.jacrev(...))`` through the bridge
+operator, and their largest difference.
 
 For each task and backend, a row: ``eager_s`` and ``compiled_s`` (median seconds per update,
 process CPU time, after warm-up, the two taken in turn), ``compile_s`` (wall seconds of the
@@ -28,6 +39,7 @@ their arithmetic (round-off differences).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Callable
@@ -44,14 +56,20 @@ from adjointsim.files import write_json  # noqa: E402
 from adjointsim.nets.mlp import MLP  # noqa: E402
 from adjointsim.nets.resnet import ResNet  # noqa: E402
 from adjointsim.train import bridge  # noqa: E402
+from adjointsim.train.hig_problems import adam_loss  # noqa: E402
+from adjointsim.train.higs import make_problem as make_hig  # noqa: E402
+from adjointsim.train.pinn import PinnConfig  # noqa: E402
+from adjointsim.train.pinn import make_problem as make_pinn  # noqa: E402
 
 
 class Task:
     """One update's pieces: the network, the data, and the loss of (network, data)."""
 
     def __init__(self, name: str, net: torch.nn.Module, data: torch.Tensor,
-                 loss: Callable[[torch.Tensor], torch.Tensor]) -> None:
+                 loss: Callable[[torch.Tensor], torch.Tensor], fullgraph: bool = True) -> None:
         self.name, self.net, self.data, self.loss = name, net, data, loss
+        #: whether the loss traces into one graph (else its graph breaks run eager)
+        self.fullgraph = fullgraph
 
 
 def ks_correction(batch: int = 16, unroll: int = 3) -> Task:
@@ -90,7 +108,34 @@ def cartpole_controller(batch: int = 8, steps: int = 100) -> Task:
     return Task("cartpole-controller", net, x0, loss)
 
 
-TASKS = {"ks-correction-wig": ks_correction, "cartpole-controller": cartpole_controller}
+def pinn_epoch() -> Task:
+    problem = make_pinn(PinnConfig(problem="poisson"))
+    torch.manual_seed(0)
+    net = problem.model()
+    terms = problem.terms
+
+    def loss(_: torch.Tensor) -> torch.Tensor:
+        losses = problem.losses(net, "taylor", terms)
+        return sum(losses[t] for t in terms)
+
+    return Task("pinn-poisson-epoch", net, torch.zeros(()), loss, fullgraph=False)
+
+
+def hig_adam() -> Task:
+    torch.manual_seed(0)
+    problem = make_hig("oscillators", 0, "full", {})
+    net = problem.model()
+    x, c, t = problem.sample(torch.Generator().manual_seed(1),
+                             problem.settings["adam"]["batch"])
+
+    def loss(x: torch.Tensor) -> torch.Tensor:
+        return adam_loss(problem, net, x, c, t)
+
+    return Task("hig-oscillators-adam", net, x, loss)
+
+
+TASKS = {"ks-correction-wig": ks_correction, "cartpole-controller": cartpole_controller,
+         "pinn-poisson-epoch": pinn_epoch, "hig-oscillators-adam": hig_adam}
 
 
 def _gradients(task: Task, loss_fn: Callable) -> list[torch.Tensor]:
@@ -120,7 +165,7 @@ def measure(make: Callable[[], Task], backend: str, updates: int) -> dict:
     task = make()
     explained = torch._dynamo.explain(task.loss)(task.data)
     torch._dynamo.reset()
-    compiled = torch.compile(task.loss, fullgraph=True, backend=backend)
+    compiled = torch.compile(task.loss, fullgraph=task.fullgraph, backend=backend)
     want = _gradients(task, task.loss)
     start = time.perf_counter()
     got = _gradients(task, compiled)  # traces, compiles and runs once
@@ -139,17 +184,66 @@ def measure(make: Callable[[], Task], backend: str, updates: int) -> dict:
     }
 
 
+def hig_jacobian(repeats: int) -> dict:
+    """The HIG Jacobian ∂y/∂f of the oscillators' batch, by the batched adjoint and by
+    ``vmap(jacrev)`` through the bridge: median CPU seconds of each and their difference."""
+    problem = make_hig("oscillators", 0, "full", {})
+    torch.manual_seed(0)
+    net, physics = problem.model(), problem.physics
+    x, c, _ = problem.sample(torch.Generator().manual_seed(1), problem.settings["hig"]["batch"])
+    with torch.no_grad():
+        f = net(x)
+
+    def single(fi: torch.Tensor, ci: torch.Tensor) -> torch.Tensor:
+        return physics(fi[None], ci[None])[0]
+
+    def by_jacrev() -> torch.Tensor:
+        return torch.func.vmap(torch.func.jacrev(single))(f, c)
+
+    routes = {"batched-adjoint": lambda: physics.jacobian(f, c)[1], "jacrev": by_jacrev}
+    got = {name: fn() for name, fn in routes.items()}  # warm-up, and the values compared
+    times: dict[str, list[float]] = {name: [] for name in routes}
+    for _ in range(repeats):
+        for name, fn in routes.items():
+            t0 = time.process_time()
+            fn()
+            times[name].append(time.process_time() - t0)
+    med = {name: float(np.median(t)) for name, t in times.items()}
+    scale = float(got["batched-adjoint"].abs().max())
+    return {"task": "hig-oscillators-jacobian", "batch": int(f.shape[0]),
+            "shape": list(got["batched-adjoint"].shape),
+            "adjoint_s": med["batched-adjoint"], "jacrev_s": med["jacrev"],
+            "jacrev_over_adjoint": med["jacrev"] / med["batched-adjoint"],
+            "max_abs_diff": float((got["jacrev"] - got["batched-adjoint"]).abs().max()),
+            "max_abs": scale, "repeats": repeats}
+
+
+def merged(path: str, rows: list[dict]) -> list[dict]:
+    """The rows already at ``path`` with those of the same task and backend replaced by
+    ``rows`` (a run of some tasks keeps the others' rows)."""
+    try:
+        with open(path) as f:
+            kept = json.load(f)
+    except FileNotFoundError:
+        kept = []
+    new = {(r["task"], r.get("backend")) for r in rows}
+    return [r for r in kept if (r["task"], r.get("backend")) not in new] + rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="5 timed updates, not 21")
     parser.add_argument("--json", type=str, default=None, help="write the rows there")
     parser.add_argument("--backends", default="aot_eager,inductor")
-    parser.add_argument("--tasks", default=",".join(TASKS))
+    parser.add_argument("--tasks", default=",".join(TASKS),
+                        help="comma-separated; none: only --jacobian")
+    parser.add_argument("--jacobian", type=str, default=None,
+                        help="also compare the HIG Jacobian's two routes; their row goes there")
     args = parser.parse_args()
     torch.set_num_threads(1)
     updates = 5 if args.quick else 21
     rows = []
-    for name in args.tasks.split(","):
+    for name in filter(None, args.tasks.split(",")):
         for backend in args.backends.split(","):
             row = measure(TASKS[name], backend, updates)
             rows.append(row)
@@ -163,7 +257,14 @@ def main() -> None:
                 flush=True,
             )
     if args.json:
-        write_json(args.json, rows)
+        write_json(args.json, merged(args.json, rows))
+    if args.jacobian:
+        row = hig_jacobian(5 if args.quick else 21)
+        print(f"{row['task']:22s} batch {row['batch']} J {row['shape']}: batched adjoint "
+              f"{row['adjoint_s'] * 1e3:.1f} ms, vmap(jacrev) {row['jacrev_s'] * 1e3:.1f} ms "
+              f"(x{row['jacrev_over_adjoint']:.2f}), max|diff| {row['max_abs_diff']:.1e} of "
+              f"max|J| {row['max_abs']:.1e}", flush=True)
+        write_json(args.jacobian, [row])
 
 
 if __name__ == "__main__":

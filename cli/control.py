@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from .options import (
+    COMPILE_HELP,
     THREADS_HELP,
     config_flags,
     overrides,
@@ -30,6 +31,7 @@ _HELPS = {
     "batch": "initial states per update",
     "weighting": "how the loss's terms are balanced (a task of several terms)",
     "threads": THREADS_HELP,
+    "compile": COMPILE_HELP,
 }
 
 

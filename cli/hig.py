@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from .options import (
+    COMPILE_HELP,
     THREADS_HELP,
     at_least,
     config_flags,
@@ -24,6 +25,7 @@ _HELPS = {
     "size and learning rate",
     "size": "tiny shrinks the data sets (for tests); quick is full",
     "threads": THREADS_HELP,
+    "compile": COMPILE_HELP,
 }
 
 

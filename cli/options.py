@@ -77,6 +77,10 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     from adjointsim.errors import UserError
     if args.seed is not None:
         raise UserError("--seed and --seeds: pass one")
+    if getattr(cfg, "compile", "off") != "off":
+        raise UserError(f"config key 'compile' = {cfg.compile!r} with --seeds: an ensemble's "
+                        "stacked update is not compiled; choose compile = off, or train one "
+                        "seed at a time")
     if len(set(args.seeds)) < len(args.seeds):
         raise UserError(f"--seeds {' '.join(map(str, args.seeds))} repeats a seed")
     cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]
@@ -154,6 +158,10 @@ def progress_option(p: argparse.ArgumentParser) -> None:
 #: what ``--threads`` (or the config key ``threads``) sets in a command that runs torch
 THREADS_HELP = ("threads of torch and of the solvers: the two take turns, each uses them all "
                 "in its turn")
+COMPILE_HELP = ("the update's loss eager (off) or through torch.compile with that backend: "
+                "aot_eager gives the eager numbers to the bit, inductor generates code (faster "
+                "updates, but a compile of seconds to minutes first; see the how-to on training "
+                "through a solver)")
 
 
 def threads_option(p: argparse.ArgumentParser, default: int | None = None) -> None:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from .options import (
+    COMPILE_HELP,
     THREADS_HELP,
     config_flags,
     overrides,
@@ -33,6 +34,7 @@ _HELPS = {
     "route": "Δu by the forward Taylor route or nested autograd (Poisson only)",
     "log_every": "epochs between rows of history.csv",
     "threads": THREADS_HELP,
+    "compile": COMPILE_HELP,
 }
 
 

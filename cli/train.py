@@ -8,6 +8,7 @@ from pathlib import Path
 from adjointsim.errors import UserError
 
 from .options import (
+    COMPILE_HELP,
     THREADS_HELP,
     config_flags,
     overrides,
@@ -42,6 +43,7 @@ _HELPS = {
     "eval_every": "updates between measurements of the test error (curve.csv; 0: none)",
     "eval_horizon": "steps of those measurements",
     "threads": THREADS_HELP,
+    "compile": COMPILE_HELP,
 }
 
 

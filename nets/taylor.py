@@ -332,6 +332,14 @@ class _ForwardLaplacian(torch.autograd.Function):
         return (None, None, None, *grads)
 
 
+# Its numba kernels write into buffers reused across calls (:class:`_Lease`), which no traced
+# graph can hold: under torch.compile it runs eager, a graph break.
+@torch.compiler.disable
+def _forward_laplacian(x: torch.Tensor, directions: torch.Tensor, acts: tuple,
+                       wb: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    return _ForwardLaplacian.apply(x, directions, acts, *wb)
+
+
 def laplacian(
     model: nn.Module, x: torch.Tensor, directions: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -344,7 +352,7 @@ def laplacian(
     layers = _layers(model)
     if not (x.requires_grad or directions.requires_grad) and _alternating(layers):
         wb = [t for m in layers[0::2] for t in (m.weight, m.bias)]
-        return _ForwardLaplacian.apply(x, directions, tuple(layers[1::2]), *wb)
+        return _forward_laplacian(x, directions, tuple(layers[1::2]), wb)
     z0, z1, z2 = x, directions, None
     for layer in layers:
         if isinstance(layer, nn.Linear):

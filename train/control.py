@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -53,6 +54,7 @@ from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import bridge
 from .checkpoint import STORE, restore
+from .compiled import BACKENDS, DOUBLED_ERROR, compiled
 from .tasks import TASKS, Task, get_task
 from .threads import use_threads
 from .unroll import CLIPS, FLOWS, GradientFlow, Update, clip_update
@@ -129,6 +131,9 @@ class ControlConfig(Config):
     weighting: str = "uniform"
     out: str = "runs/control"
     threads: int = 1
+    #: the closed loop's loss eager (off) or through torch.compile with that backend
+    #: (:mod:`adjointsim.train.compiled`); the same training, so a run may change it
+    compile: str = "off"
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = {
         "task": tuple(TASKS.names()),
@@ -146,6 +151,7 @@ class ControlConfig(Config):
         "weighting": (*GENERIC, *(a for a, n in ALIASES.items() if n in GENERIC)),
         "out": "a non-empty path",
         "threads": Interval(1),
+        "compile": BACKENDS,
     }
 
     def check(self, where: str) -> None:
@@ -168,6 +174,8 @@ class ControlConfig(Config):
             raise UserError(f"config key 'weighting'{where}: {self.weighting} reads the terms' "
                             "gradients, which mode C's doubled batch does not give; choose "
                             f"mode R, M, S or N, or one of {', '.join(others)}")
+        if self.compile != "off" and self.mode == "C":
+            raise UserError(f"config key 'compile'{where}: {DOUBLED_ERROR}")
         if self.batch > self.train:
             raise UserError(f"config key 'batch'{where}: {self.batch} exceeds train "
                             f"({self.train}), the initial states it is drawn from")
@@ -227,15 +235,19 @@ def record(state: dict, loss: float, update: Update, first: bool) -> None:
 
 def minibatch_update(cfg: ControlConfig, task: Task, net: nn.Module, opt: torch.optim.Optimizer,
                      params: list[torch.Tensor], x0: torch.Tensor, state: dict,
-                     weighting: Weighting | None = None, step: int = 0) -> None:
+                     weighting: Weighting | None = None, step: int = 0,
+                     loop: Callable[..., tuple] | None = None) -> None:
     """One minibatch's update (the run's ``step``-th), recorded in the epoch's progress
-    (``state``); ``weighting`` balances the task's terms (None: its loss as it is). An
-    update whose rollout or gradient is not finite is skipped and counted."""
+    (``state``); ``weighting`` balances the task's terms (None: its loss as it is); ``loop``
+    runs the closed loop (:func:`closed_loop`, or it compiled; a doubled batch, the epoch's
+    diagnosis, runs eager: its leaves break the graph at every step). An update whose rollout
+    or gradient is not finite is skipped and counted."""
     reads = weighting is not None and weighting.scheme.needs == "grads"
     first = state["step"] == 0 and not reads
     flow = GradientFlow(cfg.mode, cfg.clip, diagnose=first)
     try:
-        loss = closed_loop(task, net, x0, flow, terms=weighting is not None)[0]
+        run = loop if loop is not None and not flow.doubled else closed_loop
+        loss = run(task, net, x0, flow, terms=weighting is not None)[0]
     except (NonFiniteStateError, NonFiniteInputError):
         state["skipped"] += 1  # the simulator blew up under this controller: skip the update
         return
@@ -265,6 +277,7 @@ class Controller(engine.Problem):
     (:mod:`adjointsim.train.ensemble`) steps several through :meth:`batch`, :meth:`advance` and
     :meth:`end_epoch`, as :meth:`update` does for one."""
 
+    RESUMABLE = ("out", "threads", "compile")
     EXTENDABLE = ("epochs",)
     ADDED = ("level", "scene")
     RETIRED = ("poles", "target", "control_weight")
@@ -295,6 +308,7 @@ class Controller(engine.Problem):
         self.net = build_net(cfg, self.task)
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.params = list(self.net.parameters())
+        self.loop = compiled(closed_loop, cfg.compile)
         # max/avg keeps one term's weight at 1: the PINNs' PDE residual, here the objective the
         # controller exists for (the task's first term); ID takes the largest spread as reference
         reference = self.task.terms[0] if cfg.weighting == "max-avg" else None
@@ -320,7 +334,7 @@ class Controller(engine.Problem):
         start = time.perf_counter()
         minibatch_update(self.config, self.task, self.net, self.optimizer, self.params,
                          self.batch(), self.state, self.weighting,
-                         self.state["epoch"] * self.per_epoch + self.state["step"])
+                         self.state["epoch"] * self.per_epoch + self.state["step"], self.loop)
         if not self.advance(time.perf_counter() - start):
             return False
         self.end_epoch()

@@ -35,8 +35,11 @@ Where the time goes: on the oscillators nearly all of an update is the decomposi
 eigendecomposition of the Gram matrix), a fifth the physics; the layer-factor route forms the
 direction several times faster than the explicit J's Gram matrix or QR + SVD, and J itself
 (``jacobian``, for the SVD route and for other networks) far faster than ``torch.func.jacrev``
-through the same RK4 in plain torch. ``python benchmarks/hig.py`` measures each part; the
-figures are on the results page. The SVD of a wide J is taken as Jᵀ = QR followed by the
+through the same RK4 in plain torch. ``vmap(jacrev(...))`` through the bridge operator (its
+vmap rule makes it one adjoint call over the same b·d_y rows) gives this J to the bit, but
+slower on the oscillators (``python benchmarks/compile.py --tasks "" --jacobian PATH``): the
+batched adjoint stays. ``python benchmarks/hig.py`` measures each part; the figures are on the
+results page. The SVD of a wide J is taken as Jᵀ = QR followed by the
 SVD of the small R.
 
 The decomposition (``decomposition=``): ``"svd"`` is the one above, exact to round-off.

@@ -24,6 +24,7 @@ import contextlib
 import copy
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -38,6 +39,7 @@ from adjointsim.run import SEEDS, Config, Interval, plot_history
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from .checkpoint import STORE, restore
+from .compiled import BACKENDS, compiled
 from .hig import HalfInverseGradients
 from .higs import OPTIMIZERS, PROBLEMS, SIZES, Batch, HigProblem, make_problem
 from .threads import use_threads
@@ -61,6 +63,9 @@ class HigConfig(Config):
     threads: int = 1
     #: the solver's keywords over the problem's scene (dt, n, ...)
     scene: dict = field(default_factory=dict)
+    #: Adam's loss eager (off) or through torch.compile with that backend
+    #: (:mod:`adjointsim.train.compiled`); the same training, so a run may change it
+    compile: str = "off"
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = {
         "problem": tuple(PROBLEMS.names()),
@@ -72,12 +77,18 @@ class HigConfig(Config):
         "max_updates": Interval(1),
         "threads": Interval(1),
         "scene": "the solver's keywords (dt, n, ...)",
+        "compile": BACKENDS,
     }
 
     def check(self, where: str) -> None:
         """The problem's budget when none is given; the scene checked by the solver and
         recorded whole (the problem's defaults included)."""
         kind = PROBLEMS.get(self.problem)
+        if self.compile != "off" and self.optimizer != "adam":
+            raise UserError(f"config key 'compile'{where}: the {self.optimizer} update has no "
+                            "loss to compile (its Jacobian comes from the solver's batched "
+                            "adjoint, its step from a decomposition); choose compile = off, or "
+                            "optimizer adam")
         if self.budget is None:
             self.budget = kind.BUDGET
         try:
@@ -92,7 +103,7 @@ class HigRun(engine.Problem):
     evaluation of the test loss when the summed update time has passed the next mark (a
     factor 1.4 beyond the last); the final evaluation and the plot of the test loss."""
 
-    RESUMABLE = ("threads",)
+    RESUMABLE = ("threads", "compile")
     # a finished run is continued to more: its final evaluation is not a training step
     EXTENDABLE = ("budget", "max_updates")
     ADDED = ("scene",)
@@ -128,6 +139,7 @@ class HigRun(engine.Problem):
         self.problem = make_problem(cfg.problem, cfg.seed, cfg.size, cfg.scene)
         self.model = self.problem.model()
         self.opt = self.optimizer(self.model)
+        self.loss = compiled(adam_loss, cfg.compile)
         self.gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.state: dict[str, Any] = {"wall": 0.0, "updates": 0, "next_eval": 0.0,
                                       "losses": [], "diverged": False}
@@ -157,7 +169,7 @@ class HigRun(engine.Problem):
             self.config.optimizer]["batch"]))
         t0 = time.process_time()
         try:
-            value = step(self.problem, self.model, self.opt, (x, c, t))
+            value = step(self.problem, self.model, self.opt, (x, c, t), self.loss)
         except (FloatingPointError, NonFiniteStateError, NonFiniteInputError):
             # The previous update sent the network where the physics blows up: it ends.
             state["diverged"] = True
@@ -178,7 +190,7 @@ class HigRun(engine.Problem):
         batch = int(self.problem.settings[self.config.optimizer]["batch"])
         with contextlib.suppress(FloatingPointError, NonFiniteStateError, NonFiniteInputError):
             step(self.problem, twin, self.optimizer(twin),
-                 tuple(a[:batch] for a in self.problem.test))
+                 tuple(a[:batch] for a in self.problem.test), self.loss)
 
     def row(self) -> dict:
         """The history row of now: the mean training loss since the last row, the test
@@ -253,13 +265,21 @@ def train_run(cfg: HigConfig, out: str | Path, resume: bool = False, overwrite: 
                       progress=progress)
 
 
-def step(problem: HigProblem, model: torch.nn.Module, opt: Any, batch: Batch) -> float:
-    """One update of ``model`` by ``opt``; returns the batch's mean loss before it."""
+def adam_loss(problem: HigProblem, model: torch.nn.Module, x: torch.Tensor, c: torch.Tensor,
+              t: torch.Tensor) -> torch.Tensor:
+    """The batch's mean loss through the physics, which Adam's update backpropagates."""
+    return problem.loss(problem.physics(model(x), c), t).mean()
+
+
+def step(problem: HigProblem, model: torch.nn.Module, opt: Any, batch: Batch,
+         loss_fn: Callable[..., torch.Tensor] = adam_loss) -> float:
+    """One update of ``model`` by ``opt``; returns the batch's mean loss before it. Adam's
+    loss is ``loss_fn`` (:func:`adam_loss`, or it compiled)."""
     if isinstance(opt, HalfInverseGradients):
         return opt.step(*batch)
     x, c, t = batch
     opt.zero_grad()
-    loss = problem.loss(problem.physics(model(x), c), t).mean()
+    loss = loss_fn(problem, model, x, c, t)
     loss.backward()
     opt.step()
     return float(loss.detach())

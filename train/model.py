@@ -51,6 +51,9 @@ class NeuralStepper(nn.Module):
             self._solvers[param] = self._make_solver(param)
         return self._solvers[param]
 
+    # Which solver advances which rows depends on the parameters' values: under torch.compile
+    # this runs eager (a graph break per step), as no graph can hold a choice of solvers.
+    @torch.compiler.disable
     def groups(self, params: torch.Tensor) -> list[tuple[Stepper, np.ndarray | slice]]:
         """The coarse solver of each scene parameter in the batch, with the rows it advances."""
         values = params.numpy()

@@ -38,6 +38,7 @@ from adjointsim.files import pyplot, save_figure
 from adjointsim.run import SEEDS, Config, Interval, check_memory, plot_history
 
 from .checkpoint import STORE, restore
+from .compiled import BACKENDS, compiled
 from .pinns import NEEDS, PROBLEMS, PinnProblem
 from .threads import use_threads
 from .weighting import ALIASES, RECORDED, RULES, Weighting, canonical_rule, scheme_name
@@ -75,6 +76,7 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     "route": ROUTES,
     "log_every": Interval(1),
     "threads": Interval(1),
+    "compile": BACKENDS,
 }
 
 
@@ -105,6 +107,9 @@ class PinnConfig(Config):
     log_every: int = 100
     #: torch's and the solver's threads (they take turns)
     threads: int = 1
+    #: the epoch's losses eager (off) or through torch.compile with that backend
+    #: (:mod:`adjointsim.train.compiled`); the same training, so a run may change it
+    compile: str = "off"
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
@@ -163,7 +168,7 @@ class PinnRun(engine.Problem):
     diverged), a history row every ``log_every`` epochs (a checkpoint with it), every term
     and its gradient spread when a phase ends, the final evaluation and plots."""
 
-    RESUMABLE = ("threads",)
+    RESUMABLE = ("threads", "compile")
     RUN_FILES = ("field.png", "history.png")
     RESULT_KEYS = ("rel_l2", "diverged", "skipped", "seconds", "weights", "coefficients",
                    "phases")
@@ -201,6 +206,7 @@ class PinnRun(engine.Problem):
         use_threads(cfg.threads)
         self.problem = make_problem(cfg)
         self.model = self.problem.model()
+        self.losses = compiled(self.problem.losses, cfg.compile)
         self.params = list(self.model.parameters())
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr)
         self.sched = torch.optim.lr_scheduler.MultiStepLR(
@@ -218,7 +224,7 @@ class PinnRun(engine.Problem):
         self.opt.zero_grad(set_to_none=True)
         active = problem.active(epoch)
         logging = epoch % cfg.log_every == 0
-        losses = problem.losses(self.model, cfg.route, problem.terms if logging else active)
+        losses = self.losses(self.model, cfg.route, problem.terms if logging else active)
         values = {t: float(v.detach()) for t, v in losses.items()}
         if not all(math.isfinite(values[t]) for t in active):
             state["skipped"] += 1

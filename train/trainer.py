@@ -36,6 +36,7 @@ from adjointsim.run import SEEDS, Config, Interval, check_memory, plot_history
 
 from . import data as datamod
 from .checkpoint import STORE, load_checkpoint, restore
+from .compiled import BACKENDS, DOUBLED_ERROR, compiled
 from .evaluate import BLOW_UPS, TEST_SPLITS, relative_error, rollout
 from .model import CORRECTIONS, SETUPS, NeuralStepper
 from .problems import PROBLEMS, get_problem
@@ -85,6 +86,7 @@ ACCEPTED: dict[str, tuple | Interval | str] = {
     "eval_every": Interval(0),
     "eval_horizon": Interval(1),
     "scene": "the dataset's scene keys (train takes the scene from its dataset)",
+    "compile": BACKENDS,
 }
 
 
@@ -135,6 +137,9 @@ class TrainConfig(Config):
     #: the solver's scene: the dataset's (recorded here when the run starts); a key given
     #: must agree with it
     scene: dict = field(default_factory=dict)
+    #: the update's loss eager (off) or through torch.compile with that backend
+    #: (:mod:`adjointsim.train.compiled`); the same training, so a run may change it
+    compile: str = "off"
 
     ACCEPTED: ClassVar[dict[str, tuple | Interval | str]] = ACCEPTED
 
@@ -147,6 +152,8 @@ class TrainConfig(Config):
                      f"config keys 'width' and 'blocks'{where}: a {self.net} of width "
                      f"{self.width} and {self.blocks} blocks (its weights, their gradient and "
                      "Adam's moments)", "choose a smaller network")
+        if self.compile != "off" and self.mode == "C":
+            raise UserError(f"config key 'compile'{where}: {DOUBLED_ERROR}")
         if not (self.rollback == 0 or self.rollback > 1):
             raise UserError(f"config key 'rollback'{where}: {self.rollback!r} is not "
                             "0 (off) or a number > 1")
@@ -282,7 +289,7 @@ class StepperRun(engine.Problem):
     :meth:`spike`, :meth:`record`, :meth:`guard`, :meth:`boundary`) also make an ensemble's
     update (:class:`adjointsim.train.ensemble.StepperEnsemble`)."""
 
-    RESUMABLE = ("out", "threads", "max_iterations", "eval_every", "eval_horizon")
+    RESUMABLE = ("out", "threads", "max_iterations", "eval_every", "eval_horizon", "compile")
     ADDED = ("scene",)
     HISTORIES = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("training.png", "results.json", "metrics.json", "rollout-*.png")
@@ -305,6 +312,7 @@ class StepperRun(engine.Problem):
         cfg = self.config
         self.plan = self.data.plan_of(cfg)
         self.model = build_model(cfg)
+        self.loss = compiled(unrolled_loss, cfg.compile)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.plan[0]["lr"])
         self.state = {"stage": 0, "iteration": 0, "total": 0, "grad_ema": 0.0, "skipped": 0,
                       "lr_scale": 1.0, "best": math.inf, "rollbacks": 0}
@@ -360,8 +368,8 @@ class StepperRun(engine.Problem):
         optimizer.zero_grad(set_to_none=True)
         try:
             flow = GradientFlow(stage["flow"])
-            loss = unrolled_loss(model, frames, params, conditions, flow, self.config.warmup,
-                                 self.config.truncate)
+            loss = self.loss(model, frames, params, conditions, flow, self.config.warmup,
+                             self.config.truncate)
             skipped = not torch.isfinite(loss)
             if not skipped:
                 flow.backward(loss, list(model.parameters()))

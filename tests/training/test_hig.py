@@ -440,8 +440,9 @@ def test_cli_config_file_sets_keys_and_names_a_wrong_typed_one(tmp_path, capsys)
                  "--no-progress"]) == 0
     config = json.loads((out / "config.json").read_text())
     assert config == {"problem": "chain", "optimizer": "adam", "seed": 0, "budget": 50.0,
-                      "size": "tiny", "max_updates": 1, "threads": 1,  # the flag overrides
-                      "scene": PROBLEMS.get("chain").SCENE}  # the file; the scene recorded
+                      "size": "tiny", "max_updates": 1, "threads": 1, "compile": "off",
+                      # the flag overrides the file; the scene recorded
+                      "scene": PROBLEMS.get("chain").SCENE}
     bad = tmp_path / "bad.toml"
     bad.write_text('max_updates = "three"\n')
     assert main(["hig", "chain", "--config", str(bad), "--out", str(tmp_path / "other")]) == 2
