@@ -133,3 +133,18 @@ def test_an_ensemble_refuses_the_key(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "'compile'" in err and "--seeds" in err and "compile = off" in err
     assert not (tmp_path / "e").exists()
+
+
+def test_the_controllers_loss_traces_without_a_graph_break():
+    """What ``control --compile`` compiles is one graph (a break in the loop would make dynamo
+    give up the loop and compile step by step, slower than eager)."""
+    from adjointsim.train.control import build_net, closed_loop, initial_states
+    from adjointsim.train.unroll import GradientFlow
+
+    cfg = ControlConfig.load(task="cartpole", mode="R", train=8, test=4)
+    task = cfg.make_task()
+    task.steps = 3
+    x0, _ = initial_states(cfg, task)
+    explained = torch._dynamo.explain(closed_loop)(task, build_net(cfg, task), x0[:4],
+                                                   GradientFlow("R"))
+    assert (explained.graph_count, explained.graph_break_count) == (1, 0)

@@ -11,6 +11,7 @@ file in this package (plus its test).
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -80,10 +81,12 @@ class Task:
     def control(self, out: torch.Tensor) -> torch.Tensor:
         """Network output (B, k) to the solver's control (B, *control_shape)."""
         shape = self.solver.control_shape
-        if out.ndim < 1 or out[0].numel() != int(np.prod(shape)):
+        # math.prod, not np.prod: under torch.compile NumPy on a tuple becomes a traced tensor,
+        # and its int() would break the graph at every step of a closed loop
+        if out.ndim < 1 or out[0].numel() != math.prod(shape):
             raise ValueError(
                 f"{self.name}: the controller's output has shape {tuple(out.shape)}; expected "
-                f"(batch, {int(np.prod(shape))}), one control {shape} per batch element"
+                f"(batch, {math.prod(shape)}), one control {shape} per batch element"
             )
         return out.reshape(out.shape[0], *shape)
 
