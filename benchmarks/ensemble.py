@@ -13,26 +13,46 @@ For K = 1, 4, 8, 16 members in float32, and K = 4 in float64: the time of the en
 time of the K separate runs, and the members' largest relative deviation of the parameters
 from their separate runs (max |Δθ| / max |θ| per tensor). Target: ≥ 4× at K = 8 for both tasks.
 ``--out DIR`` writes ``ensemble.json``, ``ensemble.md`` and ``ensemble.png`` there.
+
+    python benchmarks/ensemble.py --routes [--quick] [--json PATH] [--out DIR]
+
+compares two ways to run an ensemble's update, side by side in one run, on the cart-pole
+controller (4 poles, mode R, batch 8), for K = 1, 2, 4, 8 members: ``stacked``, the route
+:mod:`adjointsim.train.ensemble` takes (the members' layers as batched matrix products, one
+solver call per step for all), and ``vmap``, ``torch.func.vmap`` of
+``torch.func.grad_and_value`` of one member's whole loss (its net through
+``torch.func.functional_call`` over ``torch.func.stack_module_state``'s stacked parameters, the
+solver call inside: the bridge's vmap rule makes it one call for all members), with the same
+per-member clipping, bookkeeping and stacked Adam step. Each update is timed alone, the three
+(a single run's update, stacked, vmap) in turn; the medians give speedup = K × single /
+ensemble. The epoch's first update, which also diagnoses cos(g_M, g_R), is left out: every
+other update is alike. ``max_rel_diff`` compares the vmap route's members after the timed
+updates with the stacked route's. ``--out DIR`` writes ``routes.json`` and ``routes.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from torch.func import functional_call, grad_and_value, vmap
 
 from adjointsim import parallel
 from adjointsim.files import pyplot, save_figure, write_json, write_text
+from adjointsim.train import bridge
 from adjointsim.train import control as ctl
 from adjointsim.train import data as datamod
 from adjointsim.train.checkpoint import load_checkpoint
 from adjointsim.train.ensemble import ControllerEnsemble, train_ensemble
 from adjointsim.train.trainer import TrainConfig, train
+from adjointsim.train.unroll import Update, clip_update
 
 MEMBERS = (1, 4, 8, 16)
+ROUTE_MEMBERS = (1, 2, 4, 8)
 
 
 def _deviation(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> float:
@@ -100,6 +120,88 @@ def ks_correction(members: int, updates: int, dtype: str, work: Path
         for s in range(members))
 
 
+def vmap_update(ensemble: ControllerEnsemble) -> None:
+    """One minibatch update of every member of ``ensemble`` through ``torch.func``: vmap of
+    the gradient of one member's closed loop, then the stacked route's per-member clipping,
+    record and Adam step (an epoch's first update, its diagnosis, is not covered)."""
+    members, stack = ensemble.members, ensemble.stack
+    task = members[0].task
+
+    def loss(params: tuple[torch.Tensor, ...], x: torch.Tensor) -> torch.Tensor:
+        weights = dict(zip(stack.names, params))
+        terms = []
+        for t in range(task.steps):
+            c = task.control(functional_call(stack.template, weights, (x,)))
+            x = bridge.step(task.solver, x, c)
+            term = task.step_loss(x, c, t)
+            if term is not None:
+                terms.append(term)
+        return task.total(terms)
+
+    # the stacked tensors themselves (no outer tape: torch.func.grad keeps its own)
+    grads, losses = vmap(grad_and_value(loss))(tuple(stack.tensors),
+                                               torch.stack([m.batch() for m in members]))
+    for k, m in enumerate(members):
+        update = Update(clip_update([g[k] for g in grads], m.config.clip))
+        ctl.record(m.state, float(losses[k]), update, False)
+    stack.adam(list(grads), list(range(len(members))))
+    for m in members:
+        m.advance(0.0)
+
+
+def routes(members: int, updates: int, work: Path) -> dict:
+    """Per-update medians (seconds) of a single run, the stacked route and the vmap route at
+    ``members`` members, timed in turn, and the routes' largest relative deviation."""
+    single = _controllers(1, "float32", work / "single")[0]
+    stacked = ControllerEnsemble(_controllers(members, "float32", work / "stacked"))
+    mapped = ControllerEnsemble(_controllers(members, "float32", work / "vmap"))
+    for run in (single, *stacked.members, *mapped.members):
+        run.state["step"] = 1  # past the epoch's first update (its diagnosis)
+    timed = {"single": single.update, "stacked": stacked.update,
+             "vmap": lambda: vmap_update(mapped)}
+    times: dict[str, list[float]] = {name: [] for name in timed}
+    for _ in range(updates):
+        for name, update in timed.items():
+            start = time.perf_counter()
+            update()
+            times[name].append(time.perf_counter() - start)
+    stacked.sync()
+    mapped.sync()
+    med = {name: statistics.median(t) for name, t in times.items()}
+    return {"task": "cartpole", "members": members, "updates": updates,
+            **{f"{name}_s": v for name, v in med.items()},
+            "stacked_speedup": members * med["single"] / med["stacked"],
+            "vmap_speedup": members * med["single"] / med["vmap"],
+            "max_rel_diff": max(
+                _deviation(*({n: p.detach() for n, p in r.net.named_parameters()}
+                             for r in pair))
+                for pair in zip(mapped.members, stacked.members))}
+
+
+def _route_line(r: dict) -> str:
+    return (f"| {r['task']} | {r['members']} | {r['updates']} | {1e3 * r['single_s']:.1f} | "
+            f"{1e3 * r['stacked_s']:.1f} | {1e3 * r['vmap_s']:.1f} | "
+            f"{r['stacked_speedup']:.2f} | {r['vmap_speedup']:.2f} | {r['max_rel_diff']:.1e} |")
+
+
+def compare_routes(updates: int, json_path: Path | None, out: Path | None) -> None:
+    head = ("| task | members | updates | single ms | stacked ms | vmap ms | stacked speedup | "
+            "vmap speedup | vmap vs stacked max rel diff |\n"
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(head, flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        routes(1, 2, Path(tmp) / "warm-up")  # compilation and first-call costs
+        for k in ROUTE_MEMBERS:
+            rows.append(routes(k, updates, Path(tmp) / f"k{k}"))
+            print(_route_line(rows[-1]), flush=True)
+    if json_path is not None:
+        write_json(json_path, rows)
+    if out is not None:
+        write_json(out / "routes.json", rows)
+        write_text(out / "routes.md", head + "\n" + "\n".join(map(_route_line, rows)) + "\n")
+
+
 def _plot(rows: list[dict], path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -121,9 +223,14 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer updates (a minute or two)")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR")
+    parser.add_argument("--routes", action="store_true",
+                        help="compare the stacked route with torch.func.vmap (cart-pole)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     parallel.set_threads(1)
+    if args.routes:
+        compare_routes(5 if args.quick else 15, args.json, args.out)
+        return
     updates = {"cartpole": 2 if args.quick else 6, "ks-correction": 4 if args.quick else 16}
     runs = [(k, "float32") for k in MEMBERS] + [(4, "float64")]
     rows = []

@@ -2,8 +2,14 @@
 
 Our networks are small, so an update costs per-operation overhead rather than arithmetic. An
 ensemble stacks its members' parameters (``torch.func.stack_module_state``), runs their
-networks as one vectorised call (``torch.func.vmap`` over ``functional_call``) and hands the
-solver every member's rows as one batch: one bridge call per step for the whole ensemble.
+networks as one vectorised call and hands the solver every member's rows as one batch: one
+bridge call per step for the whole ensemble. A plain chain of linear layers runs as batched
+matrix products (:func:`batched_layers`), any other network under ``torch.func.vmap`` over
+``functional_call``. The tape is ordinary autograd over these stacked operations. The other
+route, ``vmap`` of ``grad`` of one member's whole loss with the solver call inside (the
+bridge's vmap rule makes that one call too), computes the same update but is several times
+slower on the cart-pole controller, since every operation of the forward and the backward
+pass goes through vmap's batching rules (``benchmarks/ensemble.py --routes``).
 
 Each member keeps what its separate run has: its initialisation (the net its seed builds), its
 initial states and data order (its seed's), and its own Adam state. Adam is elementwise, so one
@@ -207,15 +213,18 @@ class EnsembleNet(nn.Module):
         object.__setattr__(self, "_template", template)  # not a submodule: its weights unused
         self.names, self.leaves, self.rows, self.plan = names, leaves, rows, plan
         self._call = vmap(self._one)
+        # a net lives for one update but runs at every step: each linear layer's bias and
+        # transposed weight are made once here, not once per step (fewer nodes on the tape)
+        self._layers = [("linear", leaves[op[2]].unsqueeze(1), leaves[op[1]].transpose(1, 2))
+                        if op[0] == "linear" else op for op in plan or ()]
 
     def _one(self, params: tuple[torch.Tensor, ...], x: torch.Tensor) -> torch.Tensor:
         return functional_call(self._template, dict(zip(self.names, params)), (x,))
 
     def _chain(self, x: torch.Tensor) -> torch.Tensor:
-        for op in self.plan:
+        for op in self._layers:
             if op[0] == "linear":
-                w, b = self.leaves[op[1]], self.leaves[op[2]]
-                x = torch.baddbmm(b.unsqueeze(1), x, w.transpose(1, 2))
+                x = torch.baddbmm(op[1], x, op[2])
             elif op[0] == "flatten":
                 x = x.flatten(2)
             else:
@@ -236,14 +245,17 @@ class EnsembleNet(nn.Module):
         return out.reshape(x.shape[0], *out.shape[(3 if blocks > 1 else 2):])
 
 
-def member_rows(x: torch.Tensor, members: int, rows: int) -> list[torch.Tensor]:
+def member_rows(x: torch.Tensor, members: int, rows: int, k: int | None = None
+                ) -> Sequence[torch.Tensor] | torch.Tensor:
     """Each member's rows of a batch in blocks of members × rows (C's doubled batch: its R
-    rows, then its M rows, as in its separate run)."""
+    rows, then its M rows, as in its separate run); with ``k``, member k's alone."""
     blocks = x.shape[0] // (members * rows)
     if blocks == 1:
-        return list(x.split(rows))
+        return x.split(rows) if k is None else x[k * rows:(k + 1) * rows]
     xs = x.reshape(blocks, members, rows, *x.shape[1:])
-    return [xs[:, k].reshape(blocks * rows, *x.shape[1:]) for k in range(members)]
+    if k is not None:
+        return xs[:, k].reshape(blocks * rows, *x.shape[1:])
+    return [xs[:, j].reshape(blocks * rows, *x.shape[1:]) for j in range(members)]
 
 
 # ----------------------------------------------------------------------------- controllers
@@ -259,10 +271,13 @@ class _MemberLoss:
         return self.task.control(out)
 
     def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
-        xs, cs = member_rows(x, self.members, self.rows), member_rows(c, self.members, self.rows)
-        first = self.task.step_loss(xs[0], cs[0], t)
+        # the first member's rows tell whether step t has a loss term (most steps of a task
+        # whose loss is at the end have none): the others are split off only then
+        k, rows = self.members, self.rows
+        first = self.task.step_loss(member_rows(x, k, rows, 0), member_rows(c, k, rows, 0), t)
         if first is None:
             return None
+        xs, cs = member_rows(x, k, rows), member_rows(c, k, rows)
         return torch.stack([first, *(self.task.step_loss(xk, ck, t)
                                      for xk, ck in zip(xs[1:], cs[1:]))])
 
