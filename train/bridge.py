@@ -570,6 +570,17 @@ def _from_numpy(x: object, what: str) -> torch.Tensor:
         return torch.from_numpy(x)
 
 
+def _requires_grad(x: torch.Tensor | None) -> bool:
+    """Whether ``x`` needs a gradient, looking through ``torch.func.vmap``'s wrappers: a mapped
+    tensor reports ``requires_grad=False`` even when the tensor it wraps needs one (the vmap
+    rule then records the node on the unwrapped tensors, so the tape must be kept for it)."""
+    if x is None:
+        return False
+    while not x.requires_grad and torch._C._functorch.is_batchedtensor(x):
+        x = torch._C._functorch.get_unwrapped(x)
+    return x.requires_grad
+
+
 def _torch_inputs(names: tuple[str, ...], *inputs: object) -> tuple[bool, tuple]:
     """Whether the backward pass needs a tape, and the inputs as tensors (the first, the
     state, required; the others may be None), detached when no gradient is wanted.
@@ -584,7 +595,7 @@ def _torch_inputs(names: tuple[str, ...], *inputs: object) -> tuple[bool, tuple]
             x if isinstance(x, torch.Tensor) or (x is None and i) else _from_numpy(x, names[i])
             for i, x in enumerate(inputs)
         )
-    grad = torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in inputs)
+    grad = torch.is_grad_enabled() and any(_requires_grad(x) for x in inputs)
     if not grad:
         return False, tuple(None if x is None else x.detach() for x in inputs)
     if converted:

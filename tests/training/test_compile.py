@@ -197,6 +197,67 @@ def test_vmap_of_grad_equals_a_loop_of_grad_in_one_solver_call_per_step(case):
     torch.testing.assert_close(mapped, looped, rtol=1e-12, atol=1e-15)
 
 
+def _mapped_cases():
+    """A vmapped call of each public function over three batches of two: (call, mapped inputs,
+    unmapped inputs)."""
+    cartpole = adjointsim.get("cartpole").default()
+    heat = adjointsim.get("diffusion1d-ftcs").default()
+    ks = adjointsim.get("ks1d-etdrk1").default()
+    nu = torch.tensor(heat.param_values, dtype=torch.float64)
+    grouped = [(ks, [0]), (adjointsim.get("ks1d-etdrk1").default(), [1])]
+
+    def threes(t, axis=0):  # (.., 6, ..) -> (3, .., 2, ..)
+        return t.unflatten(axis, (3, 2)).movedim(axis, 0)
+
+    return {
+        "step": (lambda x, c: bridge.step(cartpole, x, c),
+                 [threes(_state(cartpole, 6)), threes(_controls(cartpole, 1, 6)[0])], []),
+        "rollout": (lambda u, c: bridge.rollout(heat, u, 4, c),
+                    [threes(_state(heat, 6)), threes(_controls(heat, 4, 6), 1)], []),
+        "rollout, every state, checkpointed, shared parameters": (
+            lambda u, c, p: bridge.rollout(heat, u, 4, c, p, keep="all", checkpoint=3),
+            [threes(_state(heat, 6)), threes(_controls(heat, 4, 6), 1)], [nu]),
+        "grouped": (lambda u: bridge.rollout_grouped(grouped, u, 2), [threes(_state(ks, 6))], []),
+    }
+
+
+@pytest.mark.parametrize("case", list(_mapped_cases()))
+def test_vmap_then_backward_equals_a_loop_then_backward(case, monkeypatch):
+    """A vmapped tensor reports requires_grad=False whatever the tensor it wraps does: the
+    solver's node must be recorded all the same (and, without a gradient, keep no tape)."""
+    call, mapped, shared = _mapped_cases()[case]
+    inputs, k = mapped + shared, len(mapped)
+    by_vmap = vmap(call, in_dims=(0,) * k + (None,) * len(shared))
+    w = torch.from_numpy(np.random.default_rng(5).standard_normal(by_vmap(*inputs).shape))
+
+    def autograd_grads(run):
+        leaves = [x.clone().requires_grad_() for x in inputs]
+        out = run(*leaves)
+        assert out.grad_fn is not None
+        return torch.autograd.grad((w * out).sum(), leaves)
+
+    looped = autograd_grads(
+        lambda *xs: torch.stack([call(*(x[i] for x in xs[:k]), *xs[k:]) for i in range(3)]))
+    transformed = grad(lambda *xs: (w * by_vmap(*xs)).sum(), argnums=tuple(range(len(inputs))))
+    for got in (autograd_grads(by_vmap), transformed(*inputs)):
+        for g, want in zip(got, looped, strict=True):
+            torch.testing.assert_close(g, want, rtol=1e-12, atol=1e-15)
+
+    saved = []
+    forward = bridge._forward
+
+    def spy(*args, **kwargs):
+        out, kept = forward(*args, **kwargs)
+        saved.append(kept)
+        return out, kept
+
+    monkeypatch.setattr(bridge, "_forward", spy)
+    with torch.no_grad():
+        assert by_vmap(*(x.clone().requires_grad_() for x in inputs)).grad_fn is None
+    assert by_vmap(*inputs).grad_fn is None  # nothing needs a gradient
+    assert saved and all(kept is None for kept in saved)
+
+
 def test_grad_vjp_and_jacrev_equal_autograd():
     ks = adjointsim.get("ks1d-etdrk1").default()
     u0 = _state(ks, 2)
