@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+from adjointsim.cli import main
 from adjointsim.run import read_history
 from adjointsim.train.higs import make_problem
 from adjointsim.train.studies import hig as study
@@ -32,7 +33,9 @@ def test_collect_tabulates_the_evaluations_a_study_has_reached(tmp_path):
     assert rows[0]["updates"] == history[-1]["update"] > 0
     assert rows[0]["test_loss"] == history[-1]["test_loss"]
     assert set(rows[0]["loss_at"]) == {str(m) for m in cells[0]["marks"]}
-    study.main([str(tmp_path), "--size", "tiny", "--to", str(tmp_path / "report")])
-    assert json.loads((tmp_path / "report" / "rows.json").read_text())[0]["id"] == cells[0]["id"]
-    assert "median over seeds" in (tmp_path / "report" / "table.txt").read_text()
-    assert (tmp_path / "report" / "hig.png").exists()
+    assert main(["study", "hig", "--size", "tiny", "--seeds", "1", "--out", str(tmp_path),
+                 "--so-far"]) == 0
+    rows = json.loads((tmp_path / "rows-so-far.json").read_text())
+    assert [r["id"] for r in rows] == [cells[0]["id"]]
+    assert "median over seeds" in (tmp_path / "table.txt").read_text()
+    assert (tmp_path / "hig.png").exists()
