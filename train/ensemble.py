@@ -4,12 +4,13 @@ Our networks are small, so an update costs per-operation overhead rather than ar
 ensemble stacks its members' parameters (``torch.func.stack_module_state``), runs their
 networks as one vectorised call and hands the solver every member's rows as one batch: one
 bridge call per step for the whole ensemble. A plain chain of linear layers runs as batched
-matrix products (:func:`batched_layers`), any other network under ``torch.func.vmap`` over
-``functional_call``. The tape is ordinary autograd over these stacked operations. The other
-route, ``vmap`` of ``grad`` of one member's whole loss with the solver call inside (the
-bridge's vmap rule makes that one call too), computes the same update but is several times
-slower on the cart-pole controller, since every operation of the forward and the backward
-pass goes through vmap's batching rules (``benchmarks/ensemble.py --routes``).
+matrix products (:func:`batched_layers`), as does a 1D ResNet with circular padding (each
+convolution one batched product of the neighbours' channels, channels last), any other network
+under ``torch.func.vmap`` over ``functional_call``. The tape is ordinary autograd over these
+stacked operations. The other route, ``vmap`` of ``grad`` of one member's whole loss with the
+solver call inside (the bridge's vmap rule makes that one call too), computes the same update
+but is several times slower on the cart-pole controller, since every operation of the forward
+and the backward pass goes through vmap's batching rules (``benchmarks/ensemble.py --routes``).
 
 Each member keeps what its separate run has: its initialisation (the net its seed builds), its
 initial states and data order (its seed's), and its own Adam state. Adam is elementwise, so one
@@ -47,6 +48,7 @@ from torch.func import functional_call, stack_module_state, vmap
 from adjointsim import engine
 from adjointsim.errors import UserError
 from adjointsim.nets.mlp import MLP, Sin
+from adjointsim.nets.resnet import ResNet
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import control as ctl
@@ -179,13 +181,36 @@ _ELEMENTWISE = (nn.Tanh, nn.ReLU, nn.LeakyReLU, nn.GELU, nn.SiLU, nn.Sigmoid, Si
 
 def batched_layers(template: nn.Module, names: list[str]) -> list[tuple] | None:
     """The template as a chain of batched layers (a linear layer becomes one batched matrix
-    product over the members), or None where it is not a plain chain of linear layers,
-    elementwise activations and flattening: those networks run under ``vmap``. For our small
-    MLPs the batched chain is faster, as it skips vmap's per-call overhead."""
+    product over the members, a 1D circular ResNet one op of batched convolutions), or None
+    where it is not a plain chain of linear layers, elementwise activations, flattening and
+    such ResNets: those networks run under ``vmap``. For our small networks the batched chain
+    is faster (MLPs: it skips vmap's per-call overhead; the ResNet: one matrix product per
+    convolution beats the grouped convolution vmap makes of it)."""
     index = {n: i for i, n in enumerate(names)}
     plan: list[tuple] = []
 
+    def conv(module: nn.Module, prefix: str) -> tuple | None:
+        ok = (isinstance(module, nn.Conv1d) and module.padding_mode == "circular"
+              and module.bias is not None and module.stride == (1,) and module.groups == 1
+              and module.padding == (module.dilation[0] * (module.kernel_size[0] // 2),)
+              and module.kernel_size[0] % 2 == 1)
+        return (index[prefix + "weight"], index[prefix + "bias"], module.dilation[0]) \
+            if ok else None
+
+    def resnet(module: ResNet, prefix: str) -> bool:
+        convs = [conv(module.encode, prefix + "encode."), conv(module.decode, prefix + "decode.")]
+        blocks = [(conv(b.conv1, f"{prefix}blocks.{i}.conv1."),
+                   conv(b.conv2, f"{prefix}blocks.{i}.conv2."), b.act)
+                  for i, b in enumerate(module.blocks)]
+        if None in convs or any(None in b for b in blocks) \
+                or any(type(b[2]) not in _ELEMENTWISE for b in blocks):
+            return False
+        plan.append(("resnet", convs[0], blocks, convs[1]))
+        return True
+
     def walk(module: nn.Module, prefix: str) -> bool:
+        if type(module) is ResNet:
+            return resnet(module, prefix)
         if isinstance(module, nn.Sequential | MLP):
             return all(walk(m, f"{prefix}{n}.") for n, m in module.named_children())
         if isinstance(module, nn.Linear) and module.bias is not None:
@@ -215,8 +240,23 @@ class EnsembleNet(nn.Module):
         self._call = vmap(self._one)
         # a net lives for one update but runs at every step: each linear layer's bias and
         # transposed weight are made once here, not once per step (fewer nodes on the tape)
-        self._layers = [("linear", leaves[op[2]].unsqueeze(1), leaves[op[1]].transpose(1, 2))
-                        if op[0] == "linear" else op for op in plan or ()]
+        self._layers = [self._batched(op) for op in plan or ()]
+
+    def _batched(self, op: tuple) -> tuple:
+        """``op`` of the plan with its stacked weights in the layout of its batched product."""
+        if op[0] == "linear":
+            return "linear", self.leaves[op[2]].unsqueeze(1), self.leaves[op[1]].transpose(1, 2)
+        if op[0] != "resnet":
+            return op
+
+        def conv(w: int, b: int, dilation: int) -> tuple:
+            # (K, out, in, kernel) → (K, kernel·in, out): the rows of _circular_conv's columns
+            weight = self.leaves[w]
+            return (weight.permute(0, 3, 2, 1).flatten(1, 2), self.leaves[b].unsqueeze(1),
+                    dilation, weight.shape[-1])
+
+        return ("resnet", conv(*op[1]),
+                [(conv(*c1), conv(*c2), act) for c1, c2, act in op[2]], conv(*op[3]))
 
     def _one(self, params: tuple[torch.Tensor, ...], x: torch.Tensor) -> torch.Tensor:
         return functional_call(self._template, dict(zip(self.names, params)), (x,))
@@ -227,6 +267,12 @@ class EnsembleNet(nn.Module):
                 x = torch.baddbmm(op[1], x, op[2])
             elif op[0] == "flatten":
                 x = x.flatten(2)
+            elif op[0] == "resnet":
+                _, encode, blocks, decode = op
+                h = _circular_conv(x.transpose(2, 3), *encode)  # channels last from here
+                for conv1, conv2, act in blocks:
+                    h = h + _circular_conv(act(_circular_conv(act(h), *conv1)), *conv2)
+                x = _circular_conv(h, *decode).transpose(2, 3)
             else:
                 x = op[1](x)
         return x
@@ -243,6 +289,20 @@ class EnsembleNet(nn.Module):
         if blocks > 1:
             out = out.reshape(k, blocks, self.rows, *out.shape[2:]).transpose(0, 1)
         return out.reshape(x.shape[0], *out.shape[(3 if blocks > 1 else 2):])
+
+
+def _circular_conv(h: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, dilation: int,
+                   kernel: int) -> torch.Tensor:
+    """Every member's circularly padded 1D convolution of ``h`` (members, rows, grid,
+    channels) as one batched matrix product: each point's ``kernel`` neighbours' channels in a
+    row, times the member's (kernel · channels, out) weight."""
+    n, pad = h.shape[2], dilation * (kernel // 2)
+    if pad > n:
+        raise ValueError(f"a circular convolution reaching {pad} points needs a grid of at "
+                         f"least {pad} points, not {n}")
+    p = torch.cat([h[:, :, n - pad:], h, h[:, :, :pad]], 2) if pad else h
+    cols = torch.cat([p[:, :, j * dilation:j * dilation + n] for j in range(kernel)], 3)
+    return torch.baddbmm(bias, cols.flatten(1, 2), weight).unflatten(1, h.shape[1:3])
 
 
 def member_rows(x: torch.Tensor, members: int, rows: int, k: int | None = None

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -239,15 +240,20 @@ class TrainData:
         its learning rate."""
         it = state["iteration"]
         epoch, pos = divmod(it, stage["per_epoch"])
-        # The order of an epoch depends only on (seed, stage, epoch): resumable.
-        key = np.random.SeedSequence([cfg.seed, state["stage"], epoch]).generate_state(1)
-        g = torch.Generator().manual_seed(int(key[0]))
-        order = torch.randperm(len(wins), generator=g)
+        order = epoch_order(cfg.seed, state["stage"], epoch, len(wins))
         pick = torch.from_numpy(wins)[order[pos * stage["batch"]:(pos + 1) * stage["batch"]]]
         traj, start = pick[:, 0], pick[:, 1]
         frames = self.frames[traj[:, None], start[:, None] + torch.arange(window(stage, cfg))]
         lr = stage["lr"] * cfg.lr_decay ** (it // cfg.lr_decay_every) * state["lr_scale"]
         return frames, self.params[traj], self.conditions[traj], lr
+
+
+@functools.lru_cache(maxsize=8)
+def epoch_order(seed: int, stage: int, epoch: int, windows: int) -> torch.Tensor:
+    """The order of the windows in an epoch, which depends only on (seed, stage, epoch):
+    resumable. Kept for the epoch's updates (an ensemble's members each have their own)."""
+    key = np.random.SeedSequence([seed, stage, epoch]).generate_state(1)
+    return torch.randperm(windows, generator=torch.Generator().manual_seed(int(key[0])))
 
 
 def window(stage: dict, cfg: TrainConfig) -> int:

@@ -231,3 +231,42 @@ def test_train_seeds_writes_one_run_per_seed_equal_to_the_ensemble(tiny, tmp_pat
         assert main([*command, "--out", str(tmp_path / "x"), "--seeds", "0", "1",
                      "--seed", "1"]) == 2
         assert "--seed and --seeds: pass one" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("kernel", "dilations", "blocks_of_rows"), [
+    (3, None, 1), (5, (1, 2, 4), 2)])
+def test_batched_circular_resnet_equals_the_vmap_route(kernel, dilations, blocks_of_rows):
+    """The 1D circular ResNet as batched convolutions: the same outputs and gradients as each
+    member's own network (the vmap route), for dilated blocks, wider kernels and inputs in
+    several blocks of members × rows (C's doubled batch)."""
+    from adjointsim.nets.resnet import ResNet
+
+    torch.manual_seed(0)
+    nets = [ResNet(2, 1, 1, width=5, blocks=3, kernel=kernel, dilations=dilations).double()
+            for _ in range(3)]
+    batched, plain = Stack(nets, (1e-3,) * 3), Stack(nets, (1e-3,) * 3, batched=False)
+    assert batched.plan[0][0] == "resnet" and plain.plan is None
+    rows = 4
+    x = torch.randn(blocks_of_rows * 3 * rows, 2, 11, dtype=torch.float64)
+    outs, grads = [], []
+    for stack in (batched, plain):
+        leaves = stack.leaves()
+        y = stack.net(leaves, rows)(x)
+        outs.append(y)
+        grads.append(torch.autograd.grad((y * torch.cos(y)).sum(), leaves))
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-13, atol=1e-13)
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    # each member's rows are its own network's output
+    member = nets[1](x.reshape(blocks_of_rows, 3, rows, 2, 11)[:, 1].reshape(-1, 2, 11))
+    torch.testing.assert_close(
+        outs[0].reshape(blocks_of_rows, 3, rows, 1, 11)[:, 1].reshape(-1, 1, 11), member)
+
+
+def test_resnets_the_batched_route_does_not_cover_run_under_vmap():
+    from adjointsim.nets.resnet import ResNet
+
+    walls = ResNet(1, 1, 1, width=3, blocks=1, padding="zeros")
+    plane = ResNet(1, 1, 2, width=3, blocks=1)
+    assert Stack([walls, walls], (1e-3,) * 2).plan is None
+    assert Stack([plane, plane], (1e-3,) * 2).plan is None
