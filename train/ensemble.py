@@ -305,19 +305,6 @@ def _circular_conv(h: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, di
     return torch.baddbmm(bias, cols.flatten(1, 2), weight).unflatten(1, h.shape[1:3])
 
 
-def member_rows(x: torch.Tensor, members: int, rows: int, k: int | None = None
-                ) -> Sequence[torch.Tensor] | torch.Tensor:
-    """Each member's rows of a batch in blocks of members × rows (C's doubled batch: its R
-    rows, then its M rows, as in its separate run); with ``k``, member k's alone."""
-    blocks = x.shape[0] // (members * rows)
-    if blocks == 1:
-        return x.split(rows) if k is None else x[k * rows:(k + 1) * rows]
-    xs = x.reshape(blocks, members, rows, *x.shape[1:])
-    if k is not None:
-        return xs[:, k].reshape(blocks * rows, *x.shape[1:])
-    return [xs[:, j].reshape(blocks * rows, *x.shape[1:]) for j in range(members)]
-
-
 # ----------------------------------------------------------------------------- controllers
 class _MemberLoss:
     """A control task whose loss is one per member (a (K,) tensor): what
@@ -331,15 +318,9 @@ class _MemberLoss:
         return self.task.control(out)
 
     def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
-        # the first member's rows tell whether step t has a loss term (most steps of a task
-        # whose loss is at the end have none): the others are split off only then
-        k, rows = self.members, self.rows
-        first = self.task.step_loss(member_rows(x, k, rows, 0), member_rows(c, k, rows, 0), t)
-        if first is None:
-            return None
-        xs, cs = member_rows(x, k, rows), member_rows(c, k, rows)
-        return torch.stack([first, *(self.task.step_loss(xk, ck, t)
-                                     for xk, ck in zip(xs[1:], cs[1:]))])
+        # one call for every member's rows (blocks of members × rows), each member's mean
+        rows = self.task.row_loss(x, c, t)
+        return None if rows is None else rows.reshape(-1, self.members, self.rows).mean((0, 2))
 
     def total(self, terms: list[torch.Tensor]) -> torch.Tensor:
         return torch.stack(terms).sum(dim=0)

@@ -37,6 +37,19 @@ def test_every_task_is_complete(name, tmp_path):
         loss = control.closed_loop(task, net, x0)[0]
     assert set(terms) == set(task.terms)
     assert float(loss) == pytest.approx(float(sum(terms.values())), rel=1e-12)
+    # each row's loss is its episode's alone: the batch's rows one at a time give the same
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(rng.standard_normal(task.solver.state_shape(3)))
+    u = torch.from_numpy(rng.standard_normal((3, *task.solver.control_shape)))
+    for t in range(task.steps):
+        rows = task.row_loss(x, u, t)
+        if rows is None:
+            assert task.step_loss(x, u, t) is None
+            continue
+        assert rows.shape == (3,)
+        alone = torch.stack([task.step_loss(x[i:i + 1], u[i:i + 1], t) for i in range(3)])
+        torch.testing.assert_close(rows, alone, rtol=1e-14, atol=0)
+        torch.testing.assert_close(task.step_loss(x, u, t), rows.mean(), rtol=1e-14, atol=0)
     control.plot_rollout(task, net, x0[:1], tmp_path / "rollout.png", title=name)
     assert (tmp_path / "rollout.png").stat().st_size > 0
 

@@ -107,9 +107,16 @@ class Task:
         tape = batch * self.steps * 8 * self.widest * itemsize
         return states + max(rollout, tape)
 
-    def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
-        """Loss term of the state x_{t+1} reached with control c_t (None: no term)."""
+    def row_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
+        """Each row's loss term of the state x_{t+1} reached with control c_t (None: no
+        term); rows are separate episodes, so an ensemble splits one call's rows by member."""
         raise NotImplementedError
+
+    def step_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
+        """Loss term of the state x_{t+1} reached with control c_t: the rows' mean (None: no
+        term)."""
+        rows = self.row_loss(x, c, t)
+        return None if rows is None else rows.mean()
 
     def step_terms(self, x: torch.Tensor, c: torch.Tensor, t: int
                    ) -> dict[str, torch.Tensor] | None:

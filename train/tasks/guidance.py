@@ -19,16 +19,18 @@ class Guidance(Task):
     terms = ("tracking", "control")
 
     def _costs(self, x: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """mean_e |x_e|² and mean(c²)."""
-        return (x[:, :2, self.solver.drivers:] ** 2).sum(dim=1).mean(), (c**2).mean()
+        """Each row's mean_e |x_e|² and mean(c²)."""
+        return ((x[:, :2, self.solver.drivers:] ** 2).sum(dim=1).mean(dim=1),
+                (c**2).flatten(1).mean(dim=1))
 
-    def step_loss(self, x, c, t):
+    def row_loss(self, x, c, t):
         track, effort = self._costs(x, c)
         return (track + self.level * effort) / self.steps
 
     def step_terms(self, x, c, t):
         track, effort = self._costs(x, c)
-        return {"tracking": track / self.steps, "control": self.level * effort / self.steps}
+        return {"tracking": track.mean() / self.steps,
+                "control": self.level * effort.mean() / self.steps}
 
     def draw(self, fig, ax, states, t):
         """The drivers' and evaders' paths."""

@@ -42,17 +42,23 @@ class Heat(Task):
         modes = np.sin(np.pi * np.arange(1, 4)[:, None] * self.x / self.solver.length)
         return (a @ modes)[:, None]
 
-    def step_terms(self, x, c, t):
-        track = torch.zeros((), dtype=x.dtype)
+    def _costs(self, x: torch.Tensor, c: torch.Tensor, t: int
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each row's tracking term (zero before the last step) and control term."""
+        track = torch.zeros(len(x), dtype=x.dtype)
         if t == self.steps - 1:
             if self._target is None or self._target.dtype != x.dtype:
                 self._target = torch.tensor(self.target, dtype=x.dtype)
-            track = ((x - self._target) ** 2).mean()
-        return {"tracking": track, "control": EFFORT * (c**2).mean() / self.steps}
+            track = ((x - self._target) ** 2).flatten(1).mean(dim=1)
+        return track, EFFORT * (c**2).flatten(1).mean(dim=1) / self.steps
 
-    def step_loss(self, x, c, t):
-        terms = self.step_terms(x, c, t)
-        return terms["tracking"] + terms["control"]
+    def row_loss(self, x, c, t):
+        track, effort = self._costs(x, c, t)
+        return track + effort
+
+    def step_terms(self, x, c, t):
+        track, effort = self._costs(x, c, t)
+        return {"tracking": track.mean(), "control": effort.mean()}
 
     def draw(self, fig, ax, states, t):
         """The profile at the start and the end, and the target."""

@@ -45,12 +45,12 @@ class Quantum(Task):
             nn.Flatten(), nn.Linear(60 * points, 1),
         ))
 
-    def step_loss(self, x, c, t):
+    def row_loss(self, x, c, t):
         if self._target is None or self._target.dtype != x.dtype:
             self._target = torch.tensor(self.eigen[self.level - 1], dtype=x.dtype)
         # ⟨ψ_n|ψ⟩ = h Σ ψ_n ψ (ψ_n real, both normalised as h Σ|ψ|² = 1)
         overlap = self.solver.h * (x @ self._target)  # (B, 2): real and imaginary part
-        return (1.0 - (overlap**2).sum(dim=1)).mean()
+        return 1.0 - (overlap**2).sum(dim=1)
 
     def draw(self, fig, ax, states, t):
         """|ψ|² over t and x."""
