@@ -4,8 +4,8 @@ Our networks are small, so an update costs per-operation overhead rather than ar
 ensemble stacks its members' parameters (``torch.func.stack_module_state``), runs their
 networks as one vectorised call and hands the solver every member's rows as one batch: one
 bridge call per step for the whole ensemble. A plain chain of linear layers runs as batched
-matrix products (:func:`batched_layers`), as does a 1D ResNet with circular padding (each
-convolution one batched product of the neighbours' channels, channels last), any other network
+matrix products (:func:`batched_layers`), as do 1D convolutions and 1D ResNets with circular
+padding (each convolution one batched product of the neighbours' channels), any other network
 under ``torch.func.vmap`` over ``functional_call``. The tape is ordinary autograd over these
 stacked operations. The other route, ``vmap`` of ``grad`` of one member's whole loss with the
 solver call inside (the bridge's vmap rule makes that one call too), computes the same update
@@ -180,24 +180,28 @@ _ELEMENTWISE = (nn.Tanh, nn.ReLU, nn.LeakyReLU, nn.GELU, nn.SiLU, nn.Sigmoid, Si
 
 
 def batched_layers(template: nn.Module, names: list[str]) -> list[tuple] | None:
-    """The template as a chain of batched layers (a linear layer becomes one batched matrix
-    product over the members, a 1D circular ResNet one op of batched convolutions), or None
-    where it is not a plain chain of linear layers, elementwise activations, flattening and
-    such ResNets: those networks run under ``vmap``. For our small networks the batched chain
-    is faster (MLPs: it skips vmap's per-call overhead; the ResNet: one matrix product per
-    convolution beats the grouped convolution vmap makes of it)."""
+    """The template as a chain of batched layers (a linear layer or a 1D convolution becomes
+    one batched matrix product over the members, a 1D circular ResNet one op of them), or None
+    where it is not a plain chain of linear layers, 1D convolutions padded by half their reach,
+    elementwise activations, flattening and such ResNets: those networks run under ``vmap``.
+    For our small networks the batched chain is faster (MLPs: it skips vmap's per-call
+    overhead; convolutions: one matrix product each beats the grouped convolution vmap makes
+    of them)."""
     index = {n: i for i, n in enumerate(names)}
     plan: list[tuple] = []
 
     def conv(module: nn.Module, prefix: str) -> tuple | None:
-        ok = (isinstance(module, nn.Conv1d) and module.padding_mode == "circular"
-              and module.bias is not None and module.stride == (1,) and module.groups == 1
+        """A 1D convolution padded by half its reach (circular or zeros): its plan entry."""
+        ok = (isinstance(module, nn.Conv1d) and module.padding_mode in ("circular", "zeros")
+              and module.bias is not None and module.groups == 1
               and module.padding == (module.dilation[0] * (module.kernel_size[0] // 2),)
               and module.kernel_size[0] % 2 == 1)
-        return (index[prefix + "weight"], index[prefix + "bias"], module.dilation[0]) \
-            if ok else None
+        return (index[prefix + "weight"], index[prefix + "bias"], module.dilation[0],
+                module.stride[0], module.padding_mode) if ok else None
 
     def resnet(module: ResNet, prefix: str) -> bool:
+        if module.encode.padding_mode != "circular":  # walls: the vmap route
+            return False
         convs = [conv(module.encode, prefix + "encode."), conv(module.decode, prefix + "decode.")]
         blocks = [(conv(b.conv1, f"{prefix}blocks.{i}.conv1."),
                    conv(b.conv2, f"{prefix}blocks.{i}.conv2."), b.act)
@@ -221,6 +225,9 @@ def batched_layers(template: nn.Module, names: list[str]) -> list[tuple] | None:
             return True
         if type(module) in _ELEMENTWISE:
             plan.append(("act", module))
+            return True
+        if (entry := conv(module, prefix)) is not None:
+            plan.append(("conv", entry))
             return True
         return False
 
@@ -246,15 +253,17 @@ class EnsembleNet(nn.Module):
         """``op`` of the plan with its stacked weights in the layout of its batched product."""
         if op[0] == "linear":
             return "linear", self.leaves[op[2]].unsqueeze(1), self.leaves[op[1]].transpose(1, 2)
-        if op[0] != "resnet":
+        if op[0] not in ("resnet", "conv"):
             return op
 
-        def conv(w: int, b: int, dilation: int) -> tuple:
-            # (K, out, in, kernel) → (K, kernel·in, out): the rows of _circular_conv's columns
+        def conv(w: int, b: int, dilation: int, stride: int, padding: str) -> tuple:
+            # (K, out, in, kernel) → (K, kernel·in, out): the rows of _conv1d's columns
             weight = self.leaves[w]
             return (weight.permute(0, 3, 2, 1).flatten(1, 2), self.leaves[b].unsqueeze(1),
-                    dilation, weight.shape[-1])
+                    dilation, weight.shape[-1], stride, padding)
 
+        if op[0] == "conv":
+            return "conv", conv(*op[1])
         return ("resnet", conv(*op[1]),
                 [(conv(*c1), conv(*c2), act) for c1, c2, act in op[2]], conv(*op[3]))
 
@@ -267,12 +276,14 @@ class EnsembleNet(nn.Module):
                 x = torch.baddbmm(op[1], x, op[2])
             elif op[0] == "flatten":
                 x = x.flatten(2)
+            elif op[0] == "conv":
+                x = _conv1d(x.transpose(2, 3), *op[1]).transpose(2, 3)
             elif op[0] == "resnet":
                 _, encode, blocks, decode = op
-                h = _circular_conv(x.transpose(2, 3), *encode)  # channels last from here
+                h = _conv1d(x.transpose(2, 3), *encode)  # channels last from here
                 for conv1, conv2, act in blocks:
-                    h = h + _circular_conv(act(_circular_conv(act(h), *conv1)), *conv2)
-                x = _circular_conv(h, *decode).transpose(2, 3)
+                    h = h + _conv1d(act(_conv1d(act(h), *conv1)), *conv2)
+                x = _conv1d(h, *decode).transpose(2, 3)
             else:
                 x = op[1](x)
         return x
@@ -291,18 +302,24 @@ class EnsembleNet(nn.Module):
         return out.reshape(x.shape[0], *out.shape[(3 if blocks > 1 else 2):])
 
 
-def _circular_conv(h: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, dilation: int,
-                   kernel: int) -> torch.Tensor:
-    """Every member's circularly padded 1D convolution of ``h`` (members, rows, grid,
-    channels) as one batched matrix product: each point's ``kernel`` neighbours' channels in a
-    row, times the member's (kernel · channels, out) weight."""
+def _conv1d(h: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, dilation: int,
+            kernel: int, stride: int, padding: str) -> torch.Tensor:
+    """Every member's 1D convolution of ``h`` (members, rows, grid, channels), padded by half
+    its reach (``circular`` or ``zeros``), as one batched matrix product: each output point's
+    ``kernel`` neighbours' channels in a row, times the member's (kernel · channels, out)
+    weight."""
     n, pad = h.shape[2], dilation * (kernel // 2)
-    if pad > n:
-        raise ValueError(f"a circular convolution reaching {pad} points needs a grid of at "
-                         f"least {pad} points, not {n}")
-    p = torch.cat([h[:, :, n - pad:], h, h[:, :, :pad]], 2) if pad else h
-    cols = torch.cat([p[:, :, j * dilation:j * dilation + n] for j in range(kernel)], 3)
-    return torch.baddbmm(bias, cols.flatten(1, 2), weight).unflatten(1, h.shape[1:3])
+    if padding == "circular":
+        if pad > n:
+            raise ValueError(f"a circular convolution reaching {pad} points needs a grid of at "
+                             f"least {pad} points, not {n}")
+        p = torch.cat([h[:, :, n - pad:], h, h[:, :, :pad]], 2) if pad else h
+    else:
+        p = nn.functional.pad(h, (0, 0, pad, pad))
+    out = (n - 1) // stride + 1
+    cols = torch.cat([p[:, :, j * dilation:j * dilation + stride * (out - 1) + 1:stride]
+                      for j in range(kernel)], 3)
+    return torch.baddbmm(bias, cols.flatten(1, 2), weight).unflatten(1, (h.shape[1], out))
 
 
 # ----------------------------------------------------------------------------- controllers

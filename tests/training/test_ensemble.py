@@ -233,19 +233,33 @@ def test_train_seeds_writes_one_run_per_seed_equal_to_the_ensemble(tiny, tmp_pat
         assert "--seed and --seeds: pass one" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("kernel", "dilations", "blocks_of_rows"), [
-    (3, None, 1), (5, (1, 2, 4), 2)])
-def test_batched_circular_resnet_equals_the_vmap_route(kernel, dilations, blocks_of_rows):
-    """The 1D circular ResNet as batched convolutions: the same outputs and gradients as each
-    member's own network (the vmap route), for dilated blocks, wider kernels and inputs in
-    several blocks of members × rows (C's doubled batch)."""
+def _resnet(kernel, dilations):
     from adjointsim.nets.resnet import ResNet
 
+    return ResNet(2, 1, 1, width=5, blocks=3, kernel=kernel, dilations=dilations)
+
+
+def _strided():
+    """The quantum controller's kind: zero-padded strided convolutions, then a linear layer."""
+    return torch.nn.Sequential(
+        torch.nn.Conv1d(2, 6, 3, stride=2, padding=1), torch.nn.Tanh(),
+        torch.nn.Conv1d(6, 4, 5, stride=3, padding=2), torch.nn.Tanh(),
+        torch.nn.Flatten(), torch.nn.Linear(4 * 2, 3))
+
+
+@pytest.mark.parametrize(("make", "blocks_of_rows"), [
+    (lambda: _resnet(3, None), 1), (lambda: _resnet(5, (1, 2, 4)), 2), (_strided, 1),
+    (_strided, 2)])
+def test_batched_convolutions_equal_the_vmap_route(make, blocks_of_rows):
+    """1D convolutions as batched matrix products (a circular ResNet with dilated blocks and
+    wider kernels; zero-padded strided convolutions): the same outputs and gradients as each
+    member's own network (the vmap route), for inputs in one or several blocks of members ×
+    rows (C's doubled batch)."""
     torch.manual_seed(0)
-    nets = [ResNet(2, 1, 1, width=5, blocks=3, kernel=kernel, dilations=dilations).double()
-            for _ in range(3)]
+    nets = [make().double() for _ in range(3)]
     batched, plain = Stack(nets, (1e-3,) * 3), Stack(nets, (1e-3,) * 3, batched=False)
-    assert batched.plan[0][0] == "resnet" and plain.plan is None
+    assert batched.plan is not None and plain.plan is None
+    assert {op[0] for op in batched.plan} & {"resnet", "conv"}
     rows = 4
     x = torch.randn(blocks_of_rows * 3 * rows, 2, 11, dtype=torch.float64)
     outs, grads = [], []
@@ -259,14 +273,16 @@ def test_batched_circular_resnet_equals_the_vmap_route(kernel, dilations, blocks
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     # each member's rows are its own network's output
     member = nets[1](x.reshape(blocks_of_rows, 3, rows, 2, 11)[:, 1].reshape(-1, 2, 11))
+    shape = outs[0].shape[1:]
     torch.testing.assert_close(
-        outs[0].reshape(blocks_of_rows, 3, rows, 1, 11)[:, 1].reshape(-1, 1, 11), member)
+        outs[0].reshape(blocks_of_rows, 3, rows, *shape)[:, 1].reshape(-1, *shape), member)
 
 
-def test_resnets_the_batched_route_does_not_cover_run_under_vmap():
+def test_networks_the_batched_route_does_not_cover_run_under_vmap():
     from adjointsim.nets.resnet import ResNet
 
     walls = ResNet(1, 1, 1, width=3, blocks=1, padding="zeros")
     plane = ResNet(1, 1, 2, width=3, blocks=1)
-    assert Stack([walls, walls], (1e-3,) * 2).plan is None
-    assert Stack([plane, plane], (1e-3,) * 2).plan is None
+    unpadded = torch.nn.Sequential(torch.nn.Conv1d(1, 2, 3), torch.nn.Flatten())
+    for net in (walls, plane, unpadded):
+        assert Stack([net, net], (1e-3,) * 2).plan is None
