@@ -28,11 +28,21 @@ per-member clipping, bookkeeping and stacked Adam step. Each update is timed alo
 ensemble. The epoch's first update, which also diagnoses cos(g_M, g_R), is left out: every
 other update is alike. ``max_rel_diff`` compares the vmap route's members after the timed
 updates with the stacked route's. ``--out DIR`` writes ``routes.json`` and ``routes.md``.
+
+    python benchmarks/ensemble.py --convs [--quick] [--json PATH] [--out DIR]
+
+times the convolutional networks' forward and backward pass in an ensemble, side by side in one
+run: ``batched``, each 1D convolution one batched matrix product over the members (the route
+the ensembles take), against ``vmap`` of ``functional_call`` (the grouped convolutions vmap
+makes of them), for List et al.'s KS ResNet (26 × 8, batch 16, 48 points) and the quantum
+controller (batch 8, 32 points) at K = 3 and 8. The two alternate; medians; ``max_rel_diff``
+compares their outputs and gradients. ``--out DIR`` writes ``convs.json`` and ``convs.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import tempfile
 import time
@@ -47,7 +57,7 @@ from adjointsim.train import bridge
 from adjointsim.train import control as ctl
 from adjointsim.train import data as datamod
 from adjointsim.train.checkpoint import load_checkpoint
-from adjointsim.train.ensemble import ControllerEnsemble, train_ensemble
+from adjointsim.train.ensemble import ControllerEnsemble, Stack, train_ensemble
 from adjointsim.train.trainer import TrainConfig, train
 from adjointsim.train.unroll import Update, clip_update
 
@@ -202,6 +212,68 @@ def compare_routes(updates: int, json_path: Path | None, out: Path | None) -> No
         write_text(out / "routes.md", head + "\n" + "\n".join(map(_route_line, rows)) + "\n")
 
 
+def convs(net: torch.nn.Module, members: int, x: torch.Tensor, repeats: int) -> dict:
+    """Median seconds of one forward and backward pass of ``members`` copies of ``net`` on
+    ``x`` (every member's rows), batched and under vmap, and their largest deviation."""
+    torch.manual_seed(0)
+    nets = [_fresh(net) for _ in range(members)]
+    rows = len(x) // members
+    stacks = {"batched": Stack(nets, (1e-3,) * members),
+              "vmap": Stack(nets, (1e-3,) * members, batched=False)}
+    times: dict[str, list[float]] = {k: [] for k in stacks}
+    results = {}
+    for i in range(repeats + 2):
+        for name, stack in stacks.items():
+            start = time.perf_counter()
+            leaves = stack.leaves()
+            y = stack.net(leaves, rows)(x)
+            grads = torch.autograd.grad(y.square().sum(), leaves)
+            if i >= 2:  # the first two: warm-up
+                times[name].append(time.perf_counter() - start)
+            results[name] = [y.detach(), *grads]
+    diff = max(float((a - b).abs().max() / b.abs().max())
+               for a, b in zip(results["batched"], results["vmap"]))
+    batched, plain = (statistics.median(times[k]) for k in ("batched", "vmap"))
+    return {"members": members, "batched_s": batched, "vmap_s": plain,
+            "speedup": plain / batched, "max_rel_diff": diff}
+
+
+def _fresh(net: torch.nn.Module) -> torch.nn.Module:
+    """A copy of ``net`` with newly drawn weights (each member its own)."""
+    out = copy.deepcopy(net)
+    for m in out.modules():
+        if hasattr(m, "reset_parameters"):
+            m.reset_parameters()
+    return out
+
+
+def compare_convs(repeats: int, json_path: Path | None, out: Path | None) -> None:
+    from adjointsim.nets.resnet import ResNet
+    from adjointsim.train.tasks import get_task
+
+    cases = {"KS ResNet 26x8": (ResNet.preset("small", 2, 1), 16, (2, 48)),
+             "quantum controller": (get_task("quantum", 5).net(), 8, (2, 32))}
+    head = ("| network | members | batched ms | vmap ms | speedup | max rel diff |\n"
+            "|---|---:|---:|---:|---:|---:|")
+    print(head, flush=True)
+    rows = []
+    for name, (net, batch, shape) in cases.items():
+        for k in (3, 8):
+            x = torch.randn(k * batch, *shape)
+            rows.append({"network": name, **convs(net, k, x, repeats)})
+            r = rows[-1]
+            print(f"| {name} | {k} | {1e3 * r['batched_s']:.2f} | {1e3 * r['vmap_s']:.2f} | "
+                  f"{r['speedup']:.2f} | {r['max_rel_diff']:.1e} |", flush=True)
+    lines = [head] + [f"| {r['network']} | {r['members']} | {1e3 * r['batched_s']:.2f} | "
+                      f"{1e3 * r['vmap_s']:.2f} | {r['speedup']:.2f} | "
+                      f"{r['max_rel_diff']:.1e} |" for r in rows]
+    if json_path is not None:
+        write_json(json_path, rows)
+    if out is not None:
+        write_json(out / "convs.json", rows)
+        write_text(out / "convs.md", "\n".join(lines) + "\n")
+
+
 def _plot(rows: list[dict], path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
@@ -225,11 +297,16 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, metavar="DIR")
     parser.add_argument("--routes", action="store_true",
                         help="compare the stacked route with torch.func.vmap (cart-pole)")
+    parser.add_argument("--convs", action="store_true",
+                        help="compare batched convolutions with vmap's (KS ResNet, quantum)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     parallel.set_threads(1)
     if args.routes:
         compare_routes(5 if args.quick else 15, args.json, args.out)
+        return
+    if args.convs:
+        compare_convs(10 if args.quick else 50, args.json, args.out)
         return
     updates = {"cartpole": 2 if args.quick else 6, "ks-correction": 4 if args.quick else 16}
     runs = [(k, "float32") for k in MEMBERS] + [(4, "float64")]
