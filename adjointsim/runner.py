@@ -92,9 +92,10 @@ class Study:
     :func:`so_far`); studies whose cells run for hours declare it.
 
     ``pack`` (with ``run_group``): the keys in which cells may differ and still train together
-    as one ensemble (``("seed",)``, say); the runner submits one task per group of cells equal
-    in every other key, and ``run_group(cells, run_dirs)`` returns their rows in order. A group
-    with finished cells runs only the others; each cell still gets its own row file."""
+    as one ensemble (``("seed",)``, say), or a function of the cell that gives them; the runner
+    submits one task per group of cells equal in every other key, and ``run_group(cells,
+    run_dirs)`` returns their rows in order. A group with finished cells runs only the others;
+    each cell still gets its own row file."""
 
     name: str
     sizes: tuple[str, ...]
@@ -103,7 +104,7 @@ class Study:
     report: Callable[[list[dict], Path], str]
     prepare: Callable[[str, Path], dict] | None = None
     row_keys: RowKeys | Callable[[dict], RowKeys] | None = None
-    pack: tuple[str, ...] = ()
+    pack: tuple[str, ...] | Callable[[dict], tuple[str, ...]] = ()
     run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
     so_far: Callable[[Path, str, int | None], list[dict]] | None = None
 
@@ -556,6 +557,22 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
+def in_turns(groups: list[Any], reached: Callable[[Any], int], total: Callable[[Any], int],
+             chunk: int, advance: Callable[[Any, int], None]) -> None:
+    """Train ``groups`` (a study's ensembles, say) in turns of ``chunk`` units (updates,
+    epochs) until each reaches its ``total``: the group furthest behind goes next, to the next
+    multiple of ``chunk`` (``advance(group, to)``), so a study stopped at any time has every
+    group at about the same point, and groups that start behind catch up first. A group that
+    stops short of where it was sent (a run that diverged and ended) gets no more turns."""
+    ended: list[Any] = []
+    while todo := [g for g in groups if reached(g) < total(g) and g not in ended]:
+        group = min(todo, key=reached)
+        to = min((reached(group) // chunk + 1) * chunk, total(group))
+        advance(group, to)
+        if reached(group) < to:
+            ended.append(group)
+
+
 def so_far(study_name: str, out: str | Path, size: str, seeds: int | None = None) -> list[dict]:
     """The rows of every started cell of a study in ``out``, finished or not, written to
     ``OUT/rows-so-far.json`` (``rows.json`` holds finished rows only, which ``--reuse``
@@ -694,7 +711,8 @@ def _tasks(study: Study, todo: list[dict], out: Path) -> list[tuple[list[dict], 
         return [([c], execute, (study.run_cell, c, str(out / c["id"]))) for c in todo]
     groups: dict[tuple, list[dict]] = {}
     for c in todo:
-        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", *study.pack))
+        free = study.pack(c) if callable(study.pack) else study.pack
+        key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", *free))
         groups.setdefault(key, []).append(c)
     return [(g, execute_group, (study.run_group, g, str(out))) for g in groups.values()]
 

@@ -81,3 +81,8 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
 
 register_study(Study("runner-packed", ("ok",), packed_cells, run_cell, report,
                      pack=("seed",), run_group=run_group))
+
+
+register_study(Study("runner-packed-by-cell", ("ok",), packed_cells, run_cell, report,
+                     pack=lambda c: ("seed", "kind") if c["kind"] == "a" else ("seed",),
+                     run_group=run_group))

@@ -424,6 +424,27 @@ def test_a_packed_study_runs_one_task_per_group_and_only_the_unfinished_members(
     assert json.loads((out / "a-0" / "row.json").read_text())["members"] == 2
 
 
+def test_a_study_may_pack_each_cell_by_its_own_keys(tmp_path):
+    """``pack`` as a function of the cell: cells of kind a may differ in kind too (here alone
+    in their group), those of kind b in the seed only."""
+    out = tmp_path / "study"
+    runner.run("runner-packed-by-cell", out, "ok", 2, cluster="none", progress=False)
+    assert _calls(out) == ["a-0 a-1", "b-0 b-1"]
+
+
+def test_groups_in_turns_advance_the_one_furthest_behind_and_drop_one_that_ends():
+    at = {"x": 120, "y": 0, "z": 0}
+    calls = []
+
+    def advance(g, to):
+        calls.append((g, to))
+        at[g] = 70 if g == "z" else to  # z ends early (a run that diverged)
+
+    runner.in_turns(["x", "y", "z"], at.get, lambda g: 250, 100, advance)
+    assert calls == [("y", 100), ("z", 100), ("y", 200), ("x", 200), ("x", 250), ("y", 250)]
+    assert at == {"x": 250, "y": 250, "z": 70}
+
+
 def _summing_report(rows: list[dict], out: Path) -> str:
     """A report that adds the rows' values, as a study's table does."""
     return f"total {sum(r['value'] for r in rows):.3f}"

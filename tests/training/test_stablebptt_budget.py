@@ -47,3 +47,31 @@ def test_so_far_names_the_studies_that_can_and_an_empty_directory(tmp_path, caps
     err = capsys.readouterr().err
     assert "cannot tabulate unfinished cells" in err
     assert "hig" in err and "ks-curves" in err and "stablebptt" in err
+
+
+def test_the_budget_modes_take_turns_and_equal_their_runs_in_one_go(tmp_path, monkeypatch):
+    """Where cells take turns, one task of the runner holds every mode; the ensemble furthest
+    behind advances first, a turn at a time (a mode started ahead waits until the others
+    catch up), and the runs end where uninterrupted ones do."""
+    assert {stablebptt.pack(c) for c in stablebptt.cells("budget", None)} == {
+        ("seed", "clip", "mode")}
+    assert stablebptt.pack(stablebptt.cells("tiny", None)[0]) == ("seed", "clip")
+    cells = [{**c, "epochs": 3, "turn": 1} for c in stablebptt.cells("tiny", None)]
+    assert [c["mode"] for c in cells] == ["R", "C"]
+    dirs = [tmp_path / "turns" / c["id"] for c in cells]
+    stablebptt.run_group(cells[:1], dirs[:1])  # R ahead: all its 3 epochs
+    calls = []
+    real = stablebptt.train_ensemble
+
+    def logged(cfgs, **kw):
+        calls.append((cfgs[0].mode, cfgs[0].epochs))
+        return real(cfgs, **kw)
+
+    monkeypatch.setattr(stablebptt, "train_ensemble", logged)
+    rows = stablebptt.run_group(cells, dirs)
+    assert calls == [("C", 1), ("C", 2), ("C", 3), ("R", 3), ("C", 3)]
+    monkeypatch.undo()
+    for cell, row in zip(cells, rows):
+        whole = stablebptt.run_cell(cell, tmp_path / "whole" / cell["id"])
+        assert row["test_loss"] == whole["test_loss"]
+        assert row["test_history"] == whole["test_history"] and len(row["test_history"]) == 3

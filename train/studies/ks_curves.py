@@ -15,8 +15,9 @@ rule's patience is not given); 8 epochs, a tenth of the paper's updates. The tes
 1000 updates is the study tables' ``rel_error`` (12 steps, 40 test rollouts).
 
 All cells (3 modes × 3 seeds) are one task of the runner. The seeds of a mode train as one
-ensemble, and the three ensembles take turns, ``chunk`` updates each, so every curve advances
-together: a study stopped at any time has every mode at about the same update. Each member
+ensemble, and the three ensembles take turns of ``chunk`` updates, the one furthest behind
+first (:func:`adjointsim.runner.in_turns`), so every curve advances together: a study stopped
+at any time has every mode at about the same update. Each member
 keeps its curve in ``curve.csv`` of its run directory; run again, the study continues every
 run from its checkpoint. The curves so far, finished or not, are tabulated and drawn by
 ``adjointsim study ks-curves --size paper --out OUT --so-far``.
@@ -33,7 +34,7 @@ import numpy as np
 from adjointsim.engine import RESULT, started
 from adjointsim.files import log_axis, pyplot, save_figure, write_json, write_text
 from adjointsim.run import read_history
-from adjointsim.runner import Study, register_study
+from adjointsim.runner import Study, in_turns, register_study
 
 from .. import data as datamod
 from ..ensemble import train_ensemble
@@ -88,22 +89,25 @@ def paper_updates(mode: str, split: datamod.Split) -> int:
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     """Train the cells' models, the seeds of a mode as one ensemble, the modes taking turns of
     ``chunk`` updates (each resumes its runs from their checkpoints); returns their rows."""
-    chunk = SIZES[cells[0]["size"]]["chunk"]
     groups: dict[str, list[TrainConfig]] = {}
     for cell, run_dir in zip(cells, run_dirs):
         groups.setdefault(cell["mode"], []).append(config(cell, run_dir))
-    while True:
-        todo = {m: g for m, g in groups.items()
-                if not all((Path(c.out) / RESULT).exists() for c in g)}
-        if not todo:
-            break
-        for group in todo.values():
-            # to the next multiple of chunk (an evaluation point): a run stopped between two
-            # continues to it
-            reached = min(_reached(Path(c.out)) for c in group)
-            cap = (reached // chunk + 1) * chunk
-            train_ensemble([dataclasses.replace(c, max_iterations=cap) for c in group],
-                           resume=any(started(c.out) for c in group), progress=False)
+    split = datamod.load(cells[0]["data"]).splits["train"]
+
+    def total(group: list[TrainConfig]) -> int:
+        return sum(s["iterations"] for s in plan(group[0], lambda length: len(
+            datamod.windows(split, length, group[0].stride))))
+
+    def reached(group: list[TrainConfig]) -> int:
+        if all((Path(c.out) / RESULT).exists() for c in group):
+            return total(group)
+        return min(_reached(Path(c.out)) for c in group)
+
+    def advance(group: list[TrainConfig], to: int) -> None:
+        train_ensemble([dataclasses.replace(c, max_iterations=to) for c in group],
+                       resume=any(started(c.out) for c in group), progress=False)
+
+    in_turns(list(groups.values()), reached, total, SIZES[cells[0]["size"]]["chunk"], advance)
     return [row(cell, run_dir) for cell, run_dir in zip(cells, run_dirs)]
 
 

@@ -28,11 +28,14 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
 
 Cells that differ only in the seed and the clipping train together as one ensemble
 (:func:`adjointsim.train.ensemble.train_ensemble`): one task of the runner per ensemble, each
-member in its own run directory, equal to its separate run.
+member in its own run directory, equal to its separate run. In the ``budget`` size the modes of
+a task take turns of 50 epochs in one task of the runner, so a study stopped in any sitting
+compares R, M and C at about the same epoch.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +43,7 @@ import numpy as np
 from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import plot_history, read_history
-from adjointsim.runner import Study, register_study
+from adjointsim.runner import Study, in_turns, register_study
 
 from ..control import ControlConfig, build_net, evaluate, initial_states, train_controller
 from ..ensemble import train_ensemble
@@ -73,7 +76,7 @@ SIZES = {
     # guidance first: an ensemble of it costs about a tenth of a quantum one per epoch
     "budget": {"tasks": {"guidance": (0.001,), "quantum": (5,)}, "modes": ("R", "M", "C"),
                "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
-               "test": 256, "batch": 8, "epochs": (1000, 1000)},
+               "test": 256, "batch": 8, "epochs": (1000, 1000), "turn": 50},
 }
 
 
@@ -101,6 +104,7 @@ def cells(size: str, seeds: int | None) -> list[dict]:
                         "seed": seed, "epochs": s["epochs"][TASKS.get(task).costly],
                         "train": s["train"],
                         "test": s["test"], "batch": s["batch"],
+                        **({"turn": s["turn"]} if "turn" in s else {}),
                     })
     # level by level across tasks (stable: task order kept within a level)
     out.sort(key=lambda c: _levels(s["tasks"], c["task"]).index(c["level"]))
@@ -124,12 +128,45 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     return _row(cell, cfg, result, run_dir)
 
 
+def pack(cell: dict) -> tuple[str, ...]:
+    """The keys in which the cells of one runner task differ: seed and clip (one ensemble),
+    and the mode too where the modes take turns (one task, an ensemble per mode)."""
+    return ("seed", "clip", "mode") if "turn" in cell else ("seed", "clip")
+
+
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
-    """Train (or resume, or reuse) the cells' controllers as one ensemble; returns their
-    rows."""
+    """Train (or resume, or reuse) the cells' controllers, those differing only in seed and
+    clip as one ensemble; where the cells take turns (``turn`` epochs), the ensembles advance
+    in turns, the one furthest behind first, so that a stopped study has every mode at about
+    the same epoch. Returns the cells' rows."""
     cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
-    results = train_ensemble(cfgs, resume=True, progress=False)
+    groups: dict[str, list[int]] = {}
+    for i, c in enumerate(cells):
+        groups.setdefault(c["mode"], []).append(i)
+
+    def reached(group: list[int]) -> int:
+        return min(_epochs(cfgs[i]) for i in group)
+
+    def advance(group: list[int], to: int) -> None:
+        train_ensemble([dataclasses.replace(cfgs[i], epochs=max(to, _epochs(cfgs[i])))
+                        for i in group], resume=True, progress=False)
+
+    if "turn" in cells[0]:
+        in_turns(list(groups.values()), reached, lambda g: cfgs[g[0]].epochs, cells[0]["turn"],
+                 advance)
+    results: list[dict] = [{}] * len(cells)
+    for group in groups.values():
+        for i, result in zip(group, train_ensemble([cfgs[i] for i in group], resume=True,
+                                                   progress=False)):
+            results[i] = result
     return [_row(*args) for args in zip(cells, cfgs, results, run_dirs)]
+
+
+def _epochs(cfg: ControlConfig) -> int:
+    """The epochs the run in ``cfg.out`` has trained."""
+    path = Path(cfg.out) / "history.csv"
+    history = read_history(path) if path.exists() else []
+    return int(history[-1]["epoch"]) if history else 0
 
 
 def _row(cell: dict, cfg: ControlConfig, result: dict, run_dir: Path) -> dict:
@@ -295,7 +332,7 @@ register_study(Study(
     cells=cells,
     run_cell=run_cell,
     report=report,
-    pack=("seed", "clip"),
+    pack=pack,
     run_group=run_group,
     so_far=collect,
 ))
