@@ -162,10 +162,14 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     return [_row(*args) for args in zip(cells, cfgs, results, run_dirs)]
 
 
+def _history(run_dir: Path | str) -> list[dict]:
+    """The epochs the run in ``run_dir`` has trained (none if it has not started)."""
+    path = Path(run_dir) / "history.csv"
+    return read_history(path) if path.exists() else []
+
+
 def _epochs(cfg: ControlConfig) -> int:
-    """The epochs the run in ``cfg.out`` has trained."""
-    path = Path(cfg.out) / "history.csv"
-    history = read_history(path) if path.exists() else []
+    history = _history(cfg.out)
     return int(history[-1]["epoch"]) if history else 0
 
 
@@ -186,8 +190,7 @@ def collect(out: Path, size: str, seeds: int | None = None) -> list[dict]:
     of the last (what a stopped or running study has reached)."""
     rows = []
     for cell in cells(size, seeds):
-        path = Path(out) / cell["id"] / "history.csv"
-        history = read_history(path) if path.exists() else []
+        history = _history(Path(out) / cell["id"])
         if history:
             rows.append({**cell, "epochs": int(history[-1]["epoch"]),
                          "epochs_planned": cell["epochs"],
