@@ -37,6 +37,20 @@ def test_collect_tabulates_the_epochs_a_study_has_reached(tmp_path, capsys):
     assert "final test loss" in capsys.readouterr().out
 
 
+def test_rows_so_far_compare_the_modes_at_the_epoch_every_cell_has_reached(tmp_path):
+    r, c = stablebptt.cells("tiny", None)
+    stablebptt.run_cell({**r, "epochs": 3}, tmp_path / r["id"])  # R ahead of C
+    stablebptt.run_cell(c, tmp_path / c["id"])
+    rows = {x["mode"]: x for x in stablebptt.collect(tmp_path, "tiny")}
+    history = read_history(tmp_path / r["id"] / "history.csv")
+    assert rows["R"]["epochs"] == rows["C"]["epochs"] == 1
+    assert (rows["R"]["epochs_reached"], rows["C"]["epochs_reached"]) == (3, 1)
+    assert rows["R"]["test_loss"] == history[0]["test_loss"] != history[-1]["test_loss"]
+    assert len(rows["R"]["test_history"]) == 3
+    text = stablebptt.report(list(rows.values()), tmp_path)
+    assert "cartpole 1: compared at epoch 1 of 1; reached R/none 3, C/none 1" in text
+
+
 def test_so_far_names_the_studies_that_can_and_an_empty_directory(tmp_path, capsys):
     assert main(["study", "stablebptt", "--size", "tiny", "--out", str(tmp_path),
                  "--so-far"]) == 2

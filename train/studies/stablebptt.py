@@ -186,18 +186,29 @@ def _row(cell: dict, cfg: ControlConfig, result: dict, run_dir: Path) -> dict:
 
 def collect(out: Path, size: str, seeds: int | None = None) -> list[dict]:
     """The rows of the cells under the study directory ``out`` that have trained an epoch,
-    finished or not: ``epochs`` is the epochs reached, ``test_loss`` and ``train_loss`` those
-    of the last (what a stopped or running study has reached)."""
-    rows = []
+    finished or not (what a stopped or running study has reached), compared at one epoch per
+    task and level: ``epochs``, the last epoch every started cell of the task and level has
+    reached, with ``test_loss`` and ``train_loss`` at that epoch; ``epochs_reached`` is the
+    cell's own and ``test_history`` its whole curve."""
+    rows, histories = [], []
     for cell in cells(size, seeds):
         history = _history(Path(out) / cell["id"])
         if history:
-            rows.append({**cell, "epochs": int(history[-1]["epoch"]),
-                         "epochs_planned": cell["epochs"],
-                         "test_loss": history[-1]["test_loss"],
-                         "train_loss": history[-1]["train_loss"],
+            rows.append(cell)
+            histories.append(history)
+    common: dict[tuple, int] = {}
+    for cell, history in zip(rows, histories):
+        key = (cell["task"], cell["level"])
+        common[key] = min(common.get(key, len(history)), len(history))
+    out_rows = []
+    for cell, history in zip(rows, histories):
+        at = history[common[(cell["task"], cell["level"])] - 1]
+        out_rows.append({**cell, "epochs": int(at["epoch"]),
+                         "epochs_reached": int(history[-1]["epoch"]),
+                         "epochs_planned": cell["epochs"], "test_loss": at["test_loss"],
+                         "train_loss": at["train_loss"],
                          "test_history": [h["test_loss"] for h in history]})
-    return rows
+    return out_rows
 
 
 def table(rows: list[dict]) -> str:
@@ -264,6 +275,8 @@ def report(rows: list[dict], out: Path) -> str:
     ``stablebptt-TASK-levels.png``)."""
     out = Path(out)
     text = summary(rows) + "\n\n" + table(rows)
+    if any("epochs_reached" in r for r in rows):
+        text = _reached(rows) + "\n\n" + text
     write_text(out / "table.txt", text + "\n")
     for task in TASKS.names():
         mine = [r for r in rows if r["task"] == task]
@@ -274,6 +287,22 @@ def report(rows: list[dict], out: Path) -> str:
         if len(levels) > 1:
             _plot_levels(mine, levels, out / f"stablebptt-{task}-levels.png")
     return text
+
+
+def _reached(rows: list[dict]) -> str:
+    """Rows of a study still running: per task and level, the epoch its losses are compared
+    at and the epochs each mode and clip has reached (fewest over seeds)."""
+    lines = []
+    for task, level in dict.fromkeys((r["task"], r["level"]) for r in rows):
+        mine = [r for r in rows if (r["task"], r["level"]) == (task, level)]
+        reached: dict[str, int] = {}
+        for r in mine:
+            key = f"{r['mode']}/{r['clip']}"
+            reached[key] = min(reached.get(key, r["epochs_reached"]), r["epochs_reached"])
+        lines.append(f"{task} {level}: compared at epoch {mine[0]['epochs']} of "
+                     f"{mine[0]['epochs_planned']}; reached "
+                     + ", ".join(f"{k} {v}" for k, v in reached.items()))
+    return "\n".join(lines)
 
 
 _COLORS = {"R": "tab:blue", "M": "tab:orange", "S": "tab:green", "N": "tab:purple",
