@@ -93,10 +93,12 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     for cell, run_dir in zip(cells, run_dirs):
         groups.setdefault(cell["mode"], []).append(config(cell, run_dir))
     split = datamod.load(cells[0]["data"]).splits["train"]
+    # each mode's planned updates, counted once (in_turns asks at every turn)
+    totals = {g[0].mode: sum(s["iterations"] for s in plan(g[0], lambda length, c=g[0]: len(
+        datamod.windows(split, length, c.stride)))) for g in groups.values()}
 
     def total(group: list[TrainConfig]) -> int:
-        return sum(s["iterations"] for s in plan(group[0], lambda length: len(
-            datamod.windows(split, length, group[0].stride))))
+        return totals[group[0].mode]
 
     def reached(group: list[TrainConfig]) -> int:
         if all((Path(c.out) / RESULT).exists() for c in group):

@@ -163,7 +163,8 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
 
 
 def _history(run_dir: Path | str) -> list[dict]:
-    """The epochs the run in ``run_dir`` has trained (none if it has not started)."""
+    """The history rows (one per epoch trained) of the run in ``run_dir``; none if it has
+    not started."""
     path = Path(run_dir) / "history.csv"
     return read_history(path) if path.exists() else []
 
