@@ -89,6 +89,8 @@ class Problem:
     STORE: ClassVar[CheckpointStore | None] = None
     #: whether an update is held together against Ctrl-C (an optimiser's whole loop is not)
     ATOMIC: ClassVar[bool] = True
+    #: where this invocation stops short of the run's end (:func:`run`'s ``until``)
+    until: float | None = None
 
     def __init__(self, config: Config, out: str | Path):
         self.config = config
@@ -113,9 +115,9 @@ class Problem:
         return self.position() >= self.total() or self.paused()
 
     def paused(self) -> bool:
-        """Whether the run stops here, before its end, at a limit of this invocation (an
-        iteration cap): it is saved and left unfinished, to be continued with ``resume``."""
-        return False
+        """Whether the run stops here, before its end, at a limit of this invocation (``until``,
+        an iteration cap): it is saved and left unfinished, to be continued with ``resume``."""
+        return self.until is not None and self.until <= self.position() < self.total()
 
     # what it does
     def build(self) -> None:
@@ -364,16 +366,21 @@ def _less(a: Any, b: Any) -> bool:
 # ----------------------------------------------------------------------------- the loop
 def run(problems: Problem | Sequence[Problem], resume: bool = False, overwrite: bool = False,
         progress: bool = True,
-        ensemble: Callable[[list[Problem]], Updater] | None = None) -> Any:
+        ensemble: Callable[[list[Problem]], Updater] | None = None,
+        until: float | None = None) -> Any:
     """Run ``problems`` (one, or an ensemble's members) to their results; returns the result
     (one problem) or the list of results (None for a run :meth:`Problem.paused`). Every
     directory is claimed before any is written; members at the same point train together
     through ``ensemble`` (one vectorised updater), a member resumed from another point trains
-    with the members at its point."""
+    with the members at its point. ``until`` stops every run at that position (in its
+    :attr:`Problem.UNIT`), saved and unfinished, without changing the length its config
+    records: a study's turns."""
     single = isinstance(problems, Problem)
     members = [problems] if single else list(problems)
     if not members:
         raise UserError("an ensemble needs at least one member")
+    for m in members:
+        m.until = until
     dirs = [RunDir(p) for p in members]
     # --resume continues the members that hold a run; a member without one (a seed added, its
     # directory deleted) starts fresh beside them; nothing to continue at all is refused

@@ -12,6 +12,8 @@ solvers:
 * ``cartpole-controller``: a StableBPTT-like controller: the tasks' 11k MLP (100 × 2) picks the
   force of a 4-pole cart-pole from its state at each of 100 steps, one solver call per step
   (mode C's graph: the network sees the state the solver returned), batch 8;
+* ``quantum-controller``: the StableBPTT quantum controller (two strided convolutions and a
+  linear layer) through 128 Crank–Nicolson steps of ``schrodinger1d-cn``, mode R, batch 8;
 * ``pinn-poisson-epoch``: one full-batch epoch of ``adjointsim pinn``'s Poisson problem (its
   defaults: k = 1, 2500 collocation points, 100 per edge), residual and boundary terms summed,
   the Laplacian by the forward-Laplacian route (numba kernels: run eager, a graph break);
@@ -56,10 +58,13 @@ from adjointsim.files import write_json  # noqa: E402
 from adjointsim.nets.mlp import MLP  # noqa: E402
 from adjointsim.nets.resnet import ResNet  # noqa: E402
 from adjointsim.train import bridge  # noqa: E402
+from adjointsim.train.control import closed_loop  # noqa: E402
 from adjointsim.train.hig_problems import adam_loss  # noqa: E402
 from adjointsim.train.higs import make_problem as make_hig  # noqa: E402
 from adjointsim.train.pinn import PinnConfig  # noqa: E402
 from adjointsim.train.pinn import make_problem as make_pinn  # noqa: E402
+from adjointsim.train.tasks import get_task  # noqa: E402
+from adjointsim.train.unroll import GradientFlow  # noqa: E402
 
 
 class Task:
@@ -108,6 +113,21 @@ def cartpole_controller(batch: int = 8, steps: int = 100) -> Task:
     return Task("cartpole-controller", net, x0, loss)
 
 
+def quantum_controller(batch: int = 8) -> Task:
+    """The StableBPTT quantum task at its hardest level (target 5): the strided-convolution
+    controller through 128 Crank–Nicolson steps, mode R, as ``control quantum`` runs it."""
+    task = get_task("quantum", 5, None)
+    torch.manual_seed(0)
+    net = task.net()
+    torch.nn.init.normal_(net[-1].weight, std=0.1)  # a trained-like controller, not c = 0
+    x0 = torch.from_numpy(task.initial_states(np.random.default_rng(0), batch)).float()
+
+    def loss(x: torch.Tensor) -> torch.Tensor:
+        return closed_loop(task, net, x, GradientFlow("R"))[0]
+
+    return Task("quantum-controller", net, x0, loss)
+
+
 def pinn_epoch() -> Task:
     problem = make_pinn(PinnConfig(problem="poisson"))
     torch.manual_seed(0)
@@ -135,7 +155,8 @@ def hig_adam() -> Task:
 
 
 TASKS = {"ks-correction-wig": ks_correction, "cartpole-controller": cartpole_controller,
-         "pinn-poisson-epoch": pinn_epoch, "hig-oscillators-adam": hig_adam}
+         "quantum-controller": quantum_controller, "pinn-poisson-epoch": pinn_epoch,
+         "hig-oscillators-adam": hig_adam}
 
 
 def _gradients(task: Task, loss_fn: Callable) -> list[torch.Tensor]:

@@ -77,10 +77,6 @@ def train_seeds(args: argparse.Namespace, cfg: Any, out: Path, what: str,
     from adjointsim.errors import UserError
     if args.seed is not None:
         raise UserError("--seed and --seeds: pass one")
-    if getattr(cfg, "compile", "off") != "off":
-        raise UserError(f"config key 'compile' = {cfg.compile!r} with --seeds: an ensemble's "
-                        "stacked update is not compiled; choose compile = off, or train one "
-                        "seed at a time")
     if len(set(args.seeds)) < len(args.seeds):
         raise UserError(f"--seeds {' '.join(map(str, args.seeds))} repeats a seed")
     cfgs = [dataclasses.replace(cfg, seed=s, out=str(out / f"seed{s}")) for s in args.seeds]

@@ -26,6 +26,10 @@ trains controllers (members may differ in ``seed``, ``out``, ``clip`` and ``lr``
 time-steppers (``seed``, ``out`` and ``lr``; every unrolling mode, prediction and correction):
 each member keeps its own spike cutoff and rollback guard, as in its separate run.
 
+The ``compile`` key compiles an ensemble's loss as it does a separate run's
+(:mod:`adjointsim.train.compiled`): the stacked network and the closed loop or unroll around it,
+traced once per shape; the epoch's diagnosed update (a doubled batch) runs eager.
+
 An ensemble saves every member's checkpoint at the end of each epoch and on Ctrl-C between two
 updates. Should it die between two members' saves, the members resume from different points:
 each group of members at the same point then trains on as an ensemble of its own.
@@ -52,6 +56,7 @@ from adjointsim.nets.resnet import ResNet
 from adjointsim.stepper import NonFiniteInputError, NonFiniteStateError
 
 from . import control as ctl
+from .compiled import compiled
 from .evaluate import BLOW_UPS
 from .model import NeuralStepper
 from .tasks import Task
@@ -370,20 +375,21 @@ def _evaluate(task: Task, stack: Stack, x0s: list[torch.Tensor]) -> list[float]:
 
 
 def _control_update(members: list[ctl.Controller], stack: Stack, batches: list[torch.Tensor],
-                    idx: list[int]) -> None:
+                    idx: list[int], losses_of=_control_losses) -> None:
     """One minibatch update of the members ``idx`` (each its batch), recorded in their
     epoch's progress as :func:`adjointsim.train.control.minibatch_update` records a separate
-    run's."""
+    run's; ``losses_of`` is :func:`_control_losses` or it compiled."""
     task, first = members[0].task, members[idx[0]].state["step"] == 0
     leaves = stack.leaves(idx)
     flow = GradientFlow(members[0].config.mode, diagnose=first)
+    run = _control_losses if flow.doubled else losses_of  # a doubled batch breaks the graph
     try:
-        losses = _control_losses(task, stack, leaves, torch.cat([batches[k] for k in idx]),
-                                 len(batches[0]), flow)
+        losses = run(task, stack, leaves, torch.cat([batches[k] for k in idx]),
+                     len(batches[0]), flow)
     except (NonFiniteStateError, NonFiniteInputError):
         if len(idx) > 1:  # whose rows blew up is unknown: each member alone
             for k in idx:
-                _control_update(members, stack, batches, [k])
+                _control_update(members, stack, batches, [k], losses_of)
         else:
             members[idx[0]].state["skipped"] += 1
         return
@@ -418,6 +424,7 @@ class ControllerEnsemble:
                            group["betas"], group["eps"])
         for k, m in enumerate(members):
             self.stack.load(k, m.net, m.optimizer)
+        self.losses_of = compiled(_control_losses, members[0].config.compile)
 
     def done(self) -> bool:
         return self.members[0].done()
@@ -428,7 +435,7 @@ class ControllerEnsemble:
         the time."""
         members, start = self.members, time.perf_counter()
         _control_update(members, self.stack, [m.batch() for m in members],
-                        list(range(len(members))))
+                        list(range(len(members))), self.losses_of)
         share = (time.perf_counter() - start) / len(members)
         if not all([m.advance(share) for m in members]):
             return False
@@ -463,6 +470,7 @@ class StepperEnsemble:
                            adam["betas"], adam["eps"])
         for k, p in enumerate(self.group):
             self.stack.load(k, p.model.net, p.optimizer)
+        self.losses_of = compiled(_stepper_losses, self.group[0].config.compile)
 
     def done(self) -> bool:
         return self.group[0].done()
@@ -501,14 +509,12 @@ class StepperEnsemble:
         for k, batch in zip(idx, batches):
             stack.lrs[k] = batch[3]
         leaves = stack.leaves(idx)
-        model = NeuralStepper(stack.net(leaves, len(batches[0][0])), cfg.setup,
-                              runs[0].model.solver if cfg.setup == "correction" else None,
-                              cfg.correction)
+        solver = runs[0].model.solver if cfg.setup == "correction" else None
         flow = GradientFlow(stage["flow"])
         try:
             frames, params, conditions = (torch.cat(t) for t in list(zip(*batches))[:3])
-            losses = unrolled_loss(model, frames, params, conditions, flow, cfg.warmup,
-                                   cfg.truncate, members=len(idx))
+            losses = self.losses_of(cfg, stack, leaves, solver, frames, params, conditions,
+                                    flow)
             finite = torch.isfinite(losses.detach())
             if finite.any():
                 grads = flow.backward(losses[finite].sum(), leaves).grads
@@ -536,23 +542,36 @@ class StepperEnsemble:
                 stack.load(k, run.model.net, run.optimizer)
 
 
+def _stepper_losses(cfg: TrainConfig, stack: Stack, leaves: list[torch.Tensor],
+                    solver: object, frames: torch.Tensor, params: torch.Tensor,
+                    conditions: torch.Tensor, flow: GradientFlow) -> torch.Tensor:
+    """Each member's unrolled loss (a (K,) tensor) of its rows of ``frames``."""
+    k = len(leaves[0])
+    model = NeuralStepper(stack.net(leaves, len(frames) // k), cfg.setup, solver,
+                          cfg.correction)
+    return unrolled_loss(model, frames, params, conditions, flow, cfg.warmup, cfg.truncate,
+                         members=k)
+
+
 def _stepper_ensemble(cfgs: list[TrainConfig], resume: bool, progress: bool,
-                      overwrite: bool) -> list[NeuralStepper]:
+                      overwrite: bool, until: float | None) -> list[NeuralStepper]:
     cfgs, data = prepare(cfgs)
     runs = [StepperRun(c, data) for c in cfgs]
     engine.run(runs, resume=resume, overwrite=overwrite, progress=progress,
-               ensemble=StepperEnsemble)
+               ensemble=StepperEnsemble, until=until)
     return [run.trained() for run in runs]
 
 
 # ----------------------------------------------------------------------------- entry point
 def train_ensemble(cfgs: Sequence, resume: bool = False, progress: bool = True,
-                   overwrite: bool = False) -> list:
+                   overwrite: bool = False, until: float | None = None) -> list:
     """Train the controllers or neural time-steppers ``cfgs`` (configs of one kind differing
     only in the seed, the run directory and what :data:`CONTROL_FREE` / :data:`STEPPER_FREE`
     allow) as one ensemble; returns what each separate run returns, in order. ``resume`` and
     ``overwrite`` apply to every member as to a separate run: finished members are read back,
-    the rest train together."""
+    the rest train together. ``until`` (epochs, or updates of a time-stepper) stops the members
+    there, saved and unfinished (None in the returned list), as :func:`adjointsim.engine.run`
+    does."""
     cfgs = list(cfgs)
     if resume and overwrite:
         raise UserError("--resume continues a run and --overwrite discards it: pass one")
@@ -560,7 +579,7 @@ def train_ensemble(cfgs: Sequence, resume: bool = False, progress: bool = True,
         cfg.validate()
     if isinstance(cfgs[0], TrainConfig):
         check_members(cfgs, STEPPER_FREE)
-        return _stepper_ensemble(cfgs, resume, progress, overwrite)
+        return _stepper_ensemble(cfgs, resume, progress, overwrite, until)
     if not isinstance(cfgs[0], ctl.ControlConfig):
         raise UserError("ensembles train controllers (ControlConfig) and neural time-steppers "
                         f"(TrainConfig), not {type(cfgs[0]).__name__}")
@@ -568,14 +587,14 @@ def train_ensemble(cfgs: Sequence, resume: bool = False, progress: bool = True,
     if cfgs[0].weighting != "uniform":
         raise UserError("an ensemble trains the task's loss as it is (weighting uniform), "
                         f"not {cfgs[0].weighting}")
-    return _control_ensemble(cfgs, resume, progress, overwrite)
+    return _control_ensemble(cfgs, resume, progress, overwrite, until)
 
 
 def _control_ensemble(cfgs: list[ctl.ControlConfig], resume: bool, progress: bool,
-                      overwrite: bool) -> list[dict]:
+                      overwrite: bool, until: float | None) -> list[dict]:
     use_threads(cfgs[0].threads)
     members = [ctl.Controller(c) for c in cfgs]
     # resume: continue the members that hold a run, start the others (a study's new cells)
     resume = resume and any(engine.RunDir(m).holds() for m in members)
     return engine.run(members, resume=resume, overwrite=overwrite, progress=progress,
-                      ensemble=ControllerEnsemble)
+                      ensemble=ControllerEnsemble, until=until)

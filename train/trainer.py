@@ -337,7 +337,7 @@ class StepperRun(engine.Problem):
 
     def paused(self) -> bool:
         cap = self.config.max_iterations
-        return bool(cap) and cap <= self.position() < self.total()
+        return super().paused() or bool(cap) and cap <= self.position() < self.total()
 
     def boundary(self) -> bool:
         """Whether the update just made ends a checkpoint interval, or was followed by an

@@ -46,10 +46,6 @@ class Count(engine.Problem):
     STORE = JsonStore()
     UNIT = "epoch"
     stop_at: int | None = None
-    cap: int | None = None
-
-    def paused(self):
-        return self.cap is not None and self.cap <= self.epoch < self.total()
 
     def build(self):
         self.x, self.epoch, self.rows = 0.0, 0, []
@@ -213,14 +209,18 @@ def test_ensemble_members_keep_their_own_directories(tmp_path):
 def test_a_paused_run_is_saved_unfinished_and_resumes(tmp_path):
     whole = engine.run(count(tmp_path / "a"), progress=False)
     capped = count(tmp_path / "b")
-    capped.cap = 2
     capped.update = lambda: Count.update(capped) and False  # no boundary: saved at the pause
-    assert engine.run(capped, progress=False) is None
+    assert engine.run(capped, progress=False, until=2) is None
     assert not (tmp_path / "b" / "result.json").exists()
     assert len((tmp_path / "b" / "history.csv").read_text().splitlines()) == 3
     with pytest.raises(RunExists, match="unfinished run; continue it with --resume"):
         engine.run(count(tmp_path / "b"), progress=False)
+    # a turn at a time: the recorded length stays 5 whatever the stop
+    assert engine.run(count(tmp_path / "b"), resume=True, progress=False, until=4) is None
+    assert len((tmp_path / "b" / "history.csv").read_text().splitlines()) == 5
     assert engine.run(count(tmp_path / "b"), resume=True, progress=False)["x"] == whole["x"]
+    assert (tmp_path / "a" / "history.csv").read_text() == \
+        (tmp_path / "b" / "history.csv").read_text()
 
 
 def test_resumed_ensemble_starts_an_added_member_fresh(tmp_path):

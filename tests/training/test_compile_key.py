@@ -1,7 +1,7 @@
 """The ``compile`` config key of train, control, hig and pinn: checked by name, and a run
 compiled with ``aot_eager`` (torch's own kernels on the traced graph) trains to the eager
-run's history and weights to the bit (train's, stopped compiled and resumed eager, and
-inductor's, to round-off, in the slow tests)."""
+run's history and weights to the bit, alone and as an ensemble (train's, stopped compiled and
+resumed eager, and inductor's, to round-off, in the slow tests)."""
 
 from __future__ import annotations
 
@@ -89,9 +89,7 @@ def _control(out, **kw):
     cfg = ControlConfig.load(task="cartpole", mode="R", epochs=2, train=8, test=4, batch=4,
                              dtype="float64", out=str(out), **kw)
     train_controller(cfg, progress=False)
-    rows = [{k: v for k, v in r.items() if k != "seconds"}
-            for r in read_history(out / "history.csv")]
-    return rows, load_checkpoint(out / "checkpoint.pt", ("state",))["state"]["net"]
+    return _rows(out), load_checkpoint(out / "checkpoint.pt", ("state",))["state"]["net"]
 
 
 def test_control_compiled_equals_eager_to_the_bit(tmp_path):
@@ -127,12 +125,57 @@ def test_inductor_trains_the_controller_to_round_off(tmp_path):
         torch.testing.assert_close(net[k], net_c[k], rtol=1e-9, atol=1e-12)
 
 
-def test_an_ensemble_refuses_the_key(tmp_path, capsys):
-    assert cli(["control", "cartpole", "--mode", "R", "--compile", "aot_eager", "--seeds", "0",
-                "1", "--out", str(tmp_path / "e"), "--no-progress"]) == 2
-    err = capsys.readouterr().err
-    assert "'compile'" in err and "--seeds" in err and "compile = off" in err
-    assert not (tmp_path / "e").exists()
+def _seeds(out, *flags):
+    assert cli(["control", "cartpole", "--mode", "R", "--epochs", "2", "--train", "8", "--test",
+                "4", "--batch", "4", "--dtype", "float64", "--seeds", "0", "1", "--out",
+                str(out), "--no-progress", *flags]) == 0
+    return [(_rows(out / f"seed{s}"), load_checkpoint(out / f"seed{s}" / "checkpoint.pt",
+                                                      ("state",))["state"]["net"])
+            for s in (0, 1)]
+
+
+def _rows(out):
+    return [{k: v for k, v in r.items() if k != "seconds"}
+            for r in read_history(out / "history.csv")]
+
+
+def test_an_ensemble_compiled_equals_it_eager_to_the_bit(tmp_path):
+    """``--compile`` with ``--seeds``: the members' stacked loss compiled, the same training."""
+    eager = _seeds(tmp_path / "eager")
+    traced = _graphs()
+    fast = _seeds(tmp_path / "fast", "--compile", "aot_eager")
+    assert _graphs() > traced  # the key is not ignored
+    for (rows, net), (rows_c, net_c) in zip(eager, fast, strict=True):
+        assert rows == rows_c and len(rows) == 2
+        _same_weights(net, net_c)
+    assert any(not torch.equal(eager[0][1][k], eager[1][1][k]) for k in eager[0][1])
+
+
+def _graphs() -> int:
+    from torch._dynamo.utils import counters
+
+    return counters["stats"]["unique_graphs"]
+
+
+@pytest.mark.slow  # ~20 s: each step's solver choice breaks the graph, tracing step by step
+def test_a_stepper_ensemble_compiled_equals_it_eager_to_the_bit(tiny, tmp_path):
+    from adjointsim.train.ensemble import train_ensemble
+
+    def run(where, backend):
+        cfgs = [TrainConfig.load(data=str(tiny), out=str(tmp_path / where / f"s{s}"), width=4,
+                                 blocks=1, unroll=2, epochs=1, batch=2, mode="WIG", seed=s,
+                                 compile=backend) for s in (0, 1)]
+        return [m.state_dict() for m in train_ensemble(cfgs, progress=False)]
+
+    eager = run("eager", "off")
+    traced = _graphs()
+    fast = run("fast", "aot_eager")
+    assert _graphs() > traced
+    for a, b in zip(eager, fast, strict=True):
+        _same_weights(a, b)
+    for s in (0, 1):
+        assert (read_history(tmp_path / "eager" / f"s{s}" / "history.csv")
+                == read_history(tmp_path / "fast" / f"s{s}" / "history.csv"))
 
 
 def test_the_controllers_loss_traces_without_a_graph_break():

@@ -18,6 +18,16 @@ def test_the_budget_size_is_the_papers_1000_epochs_at_the_hardest_levels():
     assert {(c["epochs"], c["train"], c["test"], c["batch"]) for c in cells} == {
         (1000, 256, 256, 8)}
     assert cells[0]["task"] == "guidance" and cells[-1]["task"] == "quantum"
+    # quantum's loop compiled where the mode allows (C's doubled batch cannot be), one runner
+    # task per task all the same
+    assert {(c["task"], c["mode"], c.get("compile")) for c in cells} == {
+        ("guidance", m, None) for m in "RMC"} | {("quantum", "R", "inductor"),
+                                                 ("quantum", "M", "inductor"),
+                                                 ("quantum", "C", None)}
+    for task in ("guidance", "quantum"):
+        assert len({tuple((k, v) for k, v in sorted(c.items())
+                          if k not in ("id", *stablebptt.pack(c)))
+                    for c in cells if c["task"] == task}) == 1
 
 
 def test_collect_tabulates_the_epochs_a_study_has_reached(tmp_path, capsys):
@@ -66,24 +76,27 @@ def test_so_far_names_the_studies_that_can_and_an_empty_directory(tmp_path, caps
 def test_the_budget_modes_take_turns_and_equal_their_runs_in_one_go(tmp_path, monkeypatch):
     """Where cells take turns, one task of the runner holds every mode; the ensemble furthest
     behind advances first, a turn at a time (a mode started ahead waits until the others
-    catch up), and the runs end where uninterrupted ones do."""
+    catch up; a turn stops a run short of the epochs its config records), and the runs end
+    where uninterrupted ones do."""
     assert {stablebptt.pack(c) for c in stablebptt.cells("budget", None)} == {
-        ("seed", "clip", "mode")}
+        ("seed", "clip", "mode", "compile")}
     assert stablebptt.pack(stablebptt.cells("tiny", None)[0]) == ("seed", "clip")
     cells = [{**c, "epochs": 3, "turn": 1} for c in stablebptt.cells("tiny", None)]
     assert [c["mode"] for c in cells] == ["R", "C"]
     dirs = [tmp_path / "turns" / c["id"] for c in cells]
-    stablebptt.run_group(cells[:1], dirs[:1])  # R ahead: all its 3 epochs
+    # R ahead: started by an earlier sitting, stopped at epoch 1 of the 3 its config records
+    assert stablebptt.train_ensemble([stablebptt._config(cells[0], dirs[0])], until=1) == [None]
     calls = []
     real = stablebptt.train_ensemble
 
     def logged(cfgs, **kw):
-        calls.append((cfgs[0].mode, cfgs[0].epochs))
+        calls.append((cfgs[0].mode, kw.get("until")))
         return real(cfgs, **kw)
 
     monkeypatch.setattr(stablebptt, "train_ensemble", logged)
     rows = stablebptt.run_group(cells, dirs)
-    assert calls == [("C", 1), ("C", 2), ("C", 3), ("R", 3), ("C", 3)]
+    assert calls == [("C", 1), ("R", 2), ("C", 2), ("R", 3), ("C", 3), ("R", None),
+                     ("C", None)]
     monkeypatch.undo()
     for cell, row in zip(cells, rows):
         whole = stablebptt.run_cell(cell, tmp_path / "whole" / cell["id"])

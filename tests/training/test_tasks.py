@@ -70,6 +70,16 @@ def test_a_task_takes_its_scene_from_the_config_checked_by_the_solver():
     np.testing.assert_allclose(q.solver.h * (x0.numpy() ** 2).sum(axis=(1, 2)), 1.0)
 
 
+def test_tasks_of_one_scene_share_their_solver():
+    """One solver object per scene in a process (what a compiled loop is traced for); another
+    scene or level, another solver."""
+    a, b = get_task("quantum", 5, None), get_task("quantum", 5, {"n": 32})
+    assert a.solver is b.solver and a is not b
+    assert get_task("quantum", 5, {"n": 20}).solver is not a.solver
+    assert get_task("cartpole", 2, None).solver is not get_task("cartpole", 3, None).solver
+    assert get_task("cartpole", 2, None).solver.poles == 2
+
+
 def test_heat_reaches_its_target_and_a_trained_controller_gets_closer(tmp_path):
     task = get_task("heat", 2)
     target = torch.from_numpy(task.target[None])

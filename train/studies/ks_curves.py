@@ -25,7 +25,6 @@ run from its checkpoint. The curves so far, finished or not, are tabulated and d
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 
@@ -106,8 +105,8 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
         return min(_reached(Path(c.out)) for c in group)
 
     def advance(group: list[TrainConfig], to: int) -> None:
-        train_ensemble([dataclasses.replace(c, max_iterations=to) for c in group],
-                       resume=any(started(c.out) for c in group), progress=False)
+        train_ensemble(group, resume=any(started(c.out) for c in group), progress=False,
+                       until=to)
 
     in_turns(list(groups.values()), reached, total, SIZES[cells[0]["size"]]["chunk"], advance)
     return [row(cell, run_dir) for cell, run_dir in zip(cells, run_dirs)]

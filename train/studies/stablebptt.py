@@ -22,7 +22,8 @@ run directory and returns its row: ``task``, ``level``, ``mode``, ``clip``, ``se
 * ``paper-guidance``: the same for the guidance task at control weight 0.001, at 300 epochs;
 * ``budget``: the paper's 1000 epochs for the other two tasks at their hardest levels
   (guidance at control weight 0.001, quantum at target 5), modes R, M and C and R with norm
-  clipping, 3 seeds: hours per ensemble on one core, over several sittings (each run resumes
+  clipping, 3 seeds, quantum's closed loop compiled (``compile = "inductor"``; mode C cannot
+  be): hours per ensemble on one core, over several sittings (each run resumes
   from its checkpoint; ``adjointsim study stablebptt --size budget --out OUT --so-far``
   tabulates and draws the epochs reached so far).
 
@@ -35,7 +36,6 @@ compares R, M and C at about the same epoch.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -74,9 +74,12 @@ SIZES = {
                        "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
                        "test": 256, "batch": 8, "epochs": (300, 300)},
     # guidance first: an ensemble of it costs about a tenth of a quantum one per epoch
+    # the costly task's loop compiled (inductor) where the mode allows: minutes of tracing
+    # against hours of updates
     "budget": {"tasks": {"guidance": (0.001,), "quantum": (5,)}, "modes": ("R", "M", "C"),
                "clips": ("none",), "extra": (("R", "norm"),), "seeds": 3, "train": 256,
-               "test": 256, "batch": 8, "epochs": (1000, 1000), "turn": 50},
+               "test": 256, "batch": 8, "epochs": (1000, 1000), "turn": 50,
+               "compile": "inductor"},
 }
 
 
@@ -105,6 +108,8 @@ def cells(size: str, seeds: int | None) -> list[dict]:
                         "train": s["train"],
                         "test": s["test"], "batch": s["batch"],
                         **({"turn": s["turn"]} if "turn" in s else {}),
+                        **({"compile": s["compile"]} if "compile" in s and mode != "C"
+                           and TASKS.get(task).costly else {}),
                     })
     # level by level across tasks (stable: task order kept within a level)
     out.sort(key=lambda c: _levels(s["tasks"], c["task"]).index(c["level"]))
@@ -116,6 +121,7 @@ def _config(cell: dict, run_dir: Path) -> ControlConfig:
         task=cell["task"], mode=cell["mode"], clip=cell["clip"], level=cell["level"],
         seed=cell["seed"], epochs=cell["epochs"], train=cell["train"], test=cell["test"],
         batch=cell["batch"], out=str(run_dir), dtype="float32", threads=1,
+        compile=cell.get("compile", "off"),
     )
     cfg.validate()
     return cfg
@@ -130,8 +136,9 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
 
 def pack(cell: dict) -> tuple[str, ...]:
     """The keys in which the cells of one runner task differ: seed and clip (one ensemble),
-    and the mode too where the modes take turns (one task, an ensemble per mode)."""
-    return ("seed", "clip", "mode") if "turn" in cell else ("seed", "clip")
+    and the mode (with whether it compiles) too where the modes take turns (one task, an
+    ensemble per mode)."""
+    return ("seed", "clip", "mode", "compile") if "turn" in cell else ("seed", "clip")
 
 
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
@@ -148,8 +155,7 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
         return min(_epochs(cfgs[i]) for i in group)
 
     def advance(group: list[int], to: int) -> None:
-        train_ensemble([dataclasses.replace(cfgs[i], epochs=max(to, _epochs(cfgs[i])))
-                        for i in group], resume=True, progress=False)
+        train_ensemble([cfgs[i] for i in group], resume=True, progress=False, until=to)
 
     if "turn" in cells[0]:
         in_turns(list(groups.values()), reached, lambda g: cfgs[g[0]].epochs, cells[0]["turn"],

@@ -26,6 +26,23 @@ from adjointsim.registry import Registry
 TASKS = Registry("task", "adjointsim.train.tasks")
 
 
+def _solver(name: str, scene: dict[str, Any], fixed: dict[str, Any]):
+    """The solver of a scene, one per scene in a process: a stepper keeps nothing between
+    calls, and a compiled closed loop is traced for one solver object (an ensemble resumed
+    turn after turn, each turn a new run object, then compiles once)."""
+    key = (name, *(tuple(sorted(d.items())) for d in (scene, fixed)))
+    try:
+        hash(key)
+    except TypeError:  # a scene value that is not hashable (a list): built for this task alone
+        return scenes.build(name, scene, fixed)
+    if key not in _SOLVERS:
+        _SOLVERS[key] = scenes.build(name, scene, fixed)
+    return _SOLVERS[key]
+
+
+_SOLVERS: dict[tuple, Any] = {}
+
+
 class Task:
     """One control problem at one complexity level: scene, initial states, net, loss, plot."""
 
@@ -56,7 +73,7 @@ class Task:
                                  f"--{self.key.replace('_', '-')} instead")
         #: the scene this task's solver is built from (the defaults and ``scene``)
         self.scene = {**self.SCENE, **(scene or {})}
-        self.solver = scenes.build(self.SOLVER, self.scene, fixed)
+        self.solver = _solver(self.SOLVER, self.scene, fixed)
 
     @classmethod
     def level_of(cls, value: Any) -> Any:
