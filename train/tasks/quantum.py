@@ -24,7 +24,9 @@ class Quantum(Task):
         n = self.solver.n
         j = np.arange(1, n + 1)
         self.eigen = [np.sin(k * np.pi * j / (n + 1)) for k in range(1, max(self.levels) + 1)]
-        self._target = None
+        # made here, not on the first call: a compiled loop then sees one state of the task
+        self._target = {dtype: torch.tensor(self.eigen[self.level - 1], dtype=dtype)
+                        for dtype in (torch.float32, torch.float64)}
 
     def initial_states(self, rng, count):
         """(c1 e^{i p1} ψ1 + c2 e^{i p2} ψ2)/norm, c ~ N(0, 1), p ~ U(0, 2π)."""
@@ -46,10 +48,8 @@ class Quantum(Task):
         ))
 
     def row_loss(self, x, c, t):
-        if self._target is None or self._target.dtype != x.dtype:
-            self._target = torch.tensor(self.eigen[self.level - 1], dtype=x.dtype)
         # ⟨ψ_n|ψ⟩ = h Σ ψ_n ψ (ψ_n real, both normalised as h Σ|ψ|² = 1)
-        overlap = self.solver.h * (x @ self._target)  # (B, 2): real and imaginary part
+        overlap = self.solver.h * (x @ self._target[x.dtype])  # (B, 2): real and imaginary
         return 1.0 - (overlap**2).sum(dim=1)
 
     def draw(self, fig, ax, states, t):
