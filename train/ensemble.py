@@ -41,7 +41,7 @@ import copy
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -375,7 +375,8 @@ def _evaluate(task: Task, stack: Stack, x0s: list[torch.Tensor]) -> list[float]:
 
 
 def _control_update(members: list[ctl.Controller], stack: Stack, batches: list[torch.Tensor],
-                    idx: list[int], losses_of=_control_losses) -> None:
+                    idx: list[int], losses_of: Callable[..., torch.Tensor] = _control_losses
+                    ) -> None:
     """One minibatch update of the members ``idx`` (each its batch), recorded in their
     epoch's progress as :func:`adjointsim.train.control.minibatch_update` records a separate
     run's; ``losses_of`` is :func:`_control_losses` or it compiled."""
