@@ -29,6 +29,7 @@ No torch import here either: the worker gets one thread through the environment.
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import hashlib
 import importlib
 import json
@@ -71,6 +72,18 @@ _SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
 _NOTE_KEYS = frozenset({"non_finite"})
 
 RowKeys = Mapping[str, type | tuple[type, ...]]
+
+# on while this process runs cells with the study's progress bar on (``cluster="none"``); off
+# on a Dask worker, whose bars would not reach the study's terminal
+_RUNS_SHOW = contextvars.ContextVar("runs_show_progress", default=False)
+
+
+def runs_show_progress() -> bool:
+    """Whether a cell's runs show their own progress bars, below the study's bar of cells: on
+    where the study runs its cells in this process with its progress on (``cluster="none"``),
+    so that a cell of hours (an ensemble taking turns) shows the updates it reaches; off on a
+    Dask worker. A study's ``run_cell`` and ``run_group`` pass it as their runs' ``progress``."""
+    return _RUNS_SHOW.get()
 
 
 @dataclass(frozen=True)
@@ -227,7 +240,11 @@ def _run_cells(stack: ExitStack, study: Study, todo: list[dict], size: str, out:
         bar.update()
 
     if client is None:
-        _run_here(study, todo, out, retries, done)
+        token = _RUNS_SHOW.set(progress)
+        try:
+            _run_here(study, todo, out, retries, done)
+        finally:
+            _RUNS_SHOW.reset(token)
     else:
         _run_on_dask(client, study, todo, out, retries, done)
 

@@ -42,6 +42,7 @@ from adjointsim import engine
 from adjointsim.nets.mlp import MLP
 from adjointsim.nets.taylor import jets
 from adjointsim.run import SEEDS, Config, Interval, read_history
+from adjointsim.runner import runs_show_progress
 
 from .checkpoint import STORE, restore
 from .threads import use_threads
@@ -261,7 +262,7 @@ def run_pinn(cfg: BurgersPinnConfig, out: str | Path) -> dict:
     """The PINN side in ``out`` (continued if it holds the run): its result and history."""
     cfg.validate()
     run = BurgersPinnRun(cfg, out)
-    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=False)
+    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=runs_show_progress())
     return {**result, "history": read_history(run.out / "history.csv")}
 
 
@@ -282,7 +283,7 @@ def run_dp(demo: str, out: str | Path, noise: float = 0.0, seed: int = 0,
     obs = {int(k): v for k, v in zip(prob["steps"], prob["states"])}
     fit(data["scene"], obs, wrt=prob["wrt"], u0=prob["u0"], params=prob["params"],
         maxiter=1)  # numba's compilation, not timed
-    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=False)
+    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=runs_show_progress())
     fitted = read_observations(run.out / "fitted.h5", None)
     return {**result, "history": read_history(run.out / "history.csv"), "data": data,
             "fitted_u0": fitted["u0"][0, 0], "predicted": fitted["states"][:, 0, 0]}

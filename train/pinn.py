@@ -36,6 +36,7 @@ from adjointsim import engine
 from adjointsim.errors import UserError
 from adjointsim.files import pyplot, save_figure
 from adjointsim.run import SEEDS, Config, Interval, check_memory, plot_history
+from adjointsim.runner import runs_show_progress
 
 from .checkpoint import STORE, restore
 from .compiled import BACKENDS, compiled
@@ -345,7 +346,7 @@ def train_cell(cfg: PinnConfig, run_dir: str | Path, plot: bool = True) -> dict:
     one (an interrupted study resumes each cell from its checkpoint)."""
     cfg.validate()
     run = PinnRun(cfg, run_dir, plots=plot)
-    return engine.run(run, resume=engine.RunDir(run).holds(), progress=False)
+    return engine.run(run, resume=engine.RunDir(run).holds(), progress=runs_show_progress())
 
 
 # ----------------------------------------------------------------------------- plots

@@ -5,9 +5,10 @@ sys.path, the test's `dask worker` subprocess gets PYTHONPATH).
 Cells: "ok-K" do a little NumPy work; "dies" checkpoints one epoch at a time and kills its
 worker process (os._exit) in epoch 2 on its first attempt; "raises" raises while the file
 OUT/FAIL exists. Every call appends "id pid" to OUT/calls.log, so tests see what ran where.
-Each row holds the worker's solver threads and the threads its libraries take (``threads``):
-OMP_NUM_THREADS, which torch, MKL and OpenBLAS read when imported, else every core. That torch
-itself then takes one thread is tested in tests/training/test_runner_threads.py.
+Each row holds whether the cell's runs would show their progress bars, the worker's solver
+threads and the threads its libraries take (``threads``): OMP_NUM_THREADS, which torch, MKL and
+OpenBLAS read when imported, else every core. That torch itself then takes one thread is tested
+in tests/training/test_runner_threads.py.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from adjointsim import parallel
 from adjointsim.files import write_text
-from adjointsim.runner import Study, register_study
+from adjointsim.runner import Study, register_study, runs_show_progress
 
 EPOCHS = 4
 
@@ -37,7 +38,7 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     with open(run_dir.parent / "calls.log", "a") as log:
         log.write(f"{cell['id']} {os.getpid()}\n")
     row = {"pid": os.getpid(), "threads": int(os.environ.get("OMP_NUM_THREADS", os.cpu_count())),
-           "solver_threads": parallel.threads()}
+           "solver_threads": parallel.threads(), "shows_progress": runs_show_progress()}
     if cell["id"] == "raises" and (run_dir.parent / "FAIL").exists():
         raise ValueError("boom in cell raises\nsecond line")
     if cell["id"] == "dies":

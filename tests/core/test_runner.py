@@ -57,6 +57,7 @@ def test_local_cluster_retries_reports_failures_and_reruns_nothing(tmp_path, mon
     pids = {r["pid"] for r in rows}
     assert len(pids) in (2, 3) and os.getpid() not in pids
     assert all(r["threads"] == 1 and r["solver_threads"] == 1 for r in rows)
+    assert not any(r["shows_progress"] for r in rows)  # a worker's bars reach no terminal
     assert all(json.loads((out / r["id"] / "row.json").read_text()) == r for r in rows)
     assert not (out / "raises" / "row.json").exists()
     assert (out / "table.txt").read_text().count("\n") == 5
@@ -430,6 +431,17 @@ def test_a_study_may_pack_each_cell_by_its_own_keys(tmp_path):
     out = tmp_path / "study"
     runner.run("runner-packed-by-cell", out, "ok", 2, cluster="none", progress=False)
     assert _calls(out) == ["a-0 a-1", "b-0 b-1"]
+
+
+@pytest.mark.parametrize("progress", [True, False])
+def test_cells_run_here_show_their_runs_progress_as_the_study_does(progress, tmp_path):
+    """With ``cluster="none"`` a cell's runs show their bars (an ensemble of hours taking
+    turns shows the updates it reaches) exactly when the study shows its own, and only while
+    the study runs."""
+    runner.run("runner-test", tmp_path, "ok", 2, cluster="none", progress=progress)
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert [r["shows_progress"] for r in rows] == [progress, progress]
+    assert not runner.runs_show_progress()
 
 
 def test_groups_in_turns_advance_the_one_furthest_behind_and_drop_one_that_ends():

@@ -17,7 +17,7 @@ from statistics import median
 from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import read_history
-from adjointsim.runner import Study, register_study
+from adjointsim.runner import Study, register_study, runs_show_progress
 
 from ..hig_problems import HigConfig, HigRun, loss_at, plot_test_losses
 from ..higs import OPTIMIZERS
@@ -64,7 +64,7 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
                     budget=cell["budget"], size=cell["data"])
     cfg.validate()
     run = HigRun(cfg, Path(run_dir), plots=False)
-    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=False)
+    result = engine.run(run, resume=engine.RunDir(run).holds(), progress=runs_show_progress())
     history = read_history(Path(run_dir) / "history.csv")
     return {
         "wall_s": result["wall_s"],

@@ -33,7 +33,7 @@ import numpy as np
 from adjointsim.engine import RESULT, started
 from adjointsim.files import log_axis, pyplot, save_figure, write_json, write_text
 from adjointsim.run import read_history
-from adjointsim.runner import Study, in_turns, register_study
+from adjointsim.runner import Study, in_turns, register_study, runs_show_progress
 
 from .. import data as datamod
 from ..ensemble import train_ensemble
@@ -105,8 +105,8 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
         return min(_reached(Path(c.out)) for c in group)
 
     def advance(group: list[TrainConfig], to: int) -> None:
-        train_ensemble(group, resume=any(started(c.out) for c in group), progress=False,
-                       until=to)
+        train_ensemble(group, resume=any(started(c.out) for c in group),
+                       progress=runs_show_progress(), until=to)
 
     in_turns(list(groups.values()), reached, total, SIZES[cells[0]["size"]]["chunk"], advance)
     return [row(cell, run_dir) for cell, run_dir in zip(cells, run_dirs)]

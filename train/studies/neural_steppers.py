@@ -21,7 +21,7 @@ import numpy as np
 from adjointsim.engine import started
 from adjointsim.files import log_axis, pyplot, save_figure, write_text
 from adjointsim.run import read_history
-from adjointsim.runner import Study, register_study
+from adjointsim.runner import Study, register_study, runs_show_progress
 
 from .. import data as datamod
 from ..ensemble import train_ensemble
@@ -118,7 +118,8 @@ def _config(cell: dict, run_dir: Path) -> TrainConfig:
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Train (resuming from the cell's checkpoint if there is one) and evaluate one model."""
     cfg = _config(cell, run_dir)
-    return _row(cell, cfg, train(cfg, resume=started(run_dir), progress=False), run_dir)
+    model = train(cfg, resume=started(run_dir), progress=runs_show_progress())
+    return _row(cell, cfg, model, run_dir)
 
 
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
@@ -126,7 +127,7 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     evaluate each; returns their rows."""
     cfgs = [_config(c, d) for c, d in zip(cells, run_dirs)]
     # resuming an ensemble starts its members without a run beside the others
-    models = train_ensemble(cfgs, resume=any(map(started, run_dirs)), progress=False)
+    models = train_ensemble(cfgs, resume=any(map(started, run_dirs)), progress=runs_show_progress())
     return [_row(*args) for args in zip(cells, cfgs, models, run_dirs)]
 
 

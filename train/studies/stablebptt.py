@@ -43,7 +43,7 @@ import numpy as np
 from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
 from adjointsim.run import plot_history, read_history
-from adjointsim.runner import Study, in_turns, register_study
+from adjointsim.runner import Study, in_turns, register_study, runs_show_progress
 
 from ..control import ControlConfig, build_net, evaluate, initial_states, train_controller
 from ..ensemble import train_ensemble
@@ -130,7 +130,7 @@ def _config(cell: dict, run_dir: Path) -> ControlConfig:
 def run_cell(cell: dict, run_dir: Path) -> dict:
     """Train (or resume, or reuse) the cell's controller in ``run_dir``; returns its row."""
     cfg = _config(cell, run_dir)
-    result = train_controller(cfg, resume=engine.started(run_dir), progress=False)
+    result = train_controller(cfg, resume=engine.started(run_dir), progress=runs_show_progress())
     return _row(cell, cfg, result, run_dir)
 
 
@@ -155,7 +155,8 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
         return min(_epochs(cfgs[i]) for i in group)
 
     def advance(group: list[int], to: int) -> None:
-        train_ensemble([cfgs[i] for i in group], resume=True, progress=False, until=to)
+        train_ensemble([cfgs[i] for i in group], resume=True, progress=runs_show_progress(),
+                       until=to)
 
     if "turn" in cells[0]:
         in_turns(list(groups.values()), reached, lambda g: cfgs[g[0]].epochs, cells[0]["turn"],
@@ -163,7 +164,7 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
     results: list[dict] = [{}] * len(cells)
     for group in groups.values():
         for i, result in zip(group, train_ensemble([cfgs[i] for i in group], resume=True,
-                                                   progress=False)):
+                                                   progress=runs_show_progress())):
             results[i] = result
     return [_row(*args) for args in zip(cells, cfgs, results, run_dirs)]
 

@@ -41,7 +41,7 @@ from statistics import median
 
 from adjointsim import engine
 from adjointsim.files import pyplot, save_figure, write_text
-from adjointsim.runner import Study, register_study
+from adjointsim.runner import Study, register_study, runs_show_progress
 
 from ..control import ControlConfig, train_controller
 from ..pinn import PinnConfig, train_cell
@@ -133,7 +133,8 @@ def run_cell(cell: dict, run_dir: Path) -> dict:
     keys = {k: v for k, v in cell.items() if k not in ("id", "plot", "problem")}
     if cell["problem"] == "guidance":
         cfg = ControlConfig(task="guidance", mode="R", out=str(run_dir), **keys)
-        result = train_controller(cfg, resume=engine.started(run_dir), progress=False)
+        result = train_controller(cfg, resume=engine.started(run_dir),
+                                  progress=runs_show_progress())
         track = result["test_terms"]["tracking"]
         return {"rel_l2": track if math.isfinite(track) else None,
                 "metric": METRICS["guidance"], "diverged": not math.isfinite(track),
