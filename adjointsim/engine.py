@@ -425,9 +425,9 @@ def _loop(updater: Updater, group: list[Problem], dirs: list[RunDir], progress: 
 
     def show(position: float, **postfix: Any) -> None:
         if bar is not None:
+            if postfix:  # drawn by the update's refresh, which tqdm paces (a line per update else)
+                bar.set_postfix(postfix, refresh=False)
             bar.update(_round(position) - bar.n)
-            if postfix:
-                bar.set_postfix(postfix)
 
     for p in group:
         p.progress = show

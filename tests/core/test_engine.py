@@ -251,3 +251,33 @@ def test_a_run_of_an_earlier_version_is_this_commands_not_foreign(tmp_path):
         engine.run(count(out), overwrite=True, progress=False)
     result = engine.run(Renamed(CountConfig(), out), overwrite=True, progress=False)
     assert result["rate"] == 0.5 and "speed" not in json.loads((out / "config.json").read_text())
+
+
+class Busy(Count):
+    """Many quick updates, each with a figure beside the bar's count."""
+
+    def update(self):
+        super().update()
+        return False  # no boundary: saved on the engine's clock only
+
+    def postfix(self):
+        return {"x": self.x}
+
+
+def _drawn(run, capsys, monkeypatch, mininterval: str) -> list[str]:
+    monkeypatch.delenv("TQDM_DISABLE", raising=False)
+    monkeypatch.setenv("TQDM_MININTERVAL", mininterval)
+    engine.run(run, progress=True)
+    return [d for d in capsys.readouterr().err.split("\r") if "epoch" in d]
+
+
+def test_the_bar_is_drawn_at_tqdms_pace(tmp_path, capsys, monkeypatch):
+    """A bar redrawn on every update wrote a line per update to a study's log."""
+    drawn = _drawn(Busy(CountConfig(epochs=2000), tmp_path / "r"), capsys, monkeypatch, "3600")
+    assert len(drawn) == 1 and "0/2000" in drawn[0]  # drawn when made, not 2000 times
+
+
+def test_the_bar_shows_the_figure_of_the_update_it_counts(tmp_path, capsys, monkeypatch):
+    drawn = _drawn(Busy(CountConfig(epochs=3), tmp_path / "r"), capsys, monkeypatch, "0")
+    assert [d for d in drawn if "1/3" in d][0].rstrip().endswith("x=0.5]")
+    assert [d for d in drawn if "2/3" in d][0].rstrip().endswith("x=0.75]")
