@@ -306,8 +306,10 @@ def _study(out: Path, name: str, seeds: int, *extra: str) -> list[str]:
 
 
 @pytest.mark.parametrize("bad, says", [
-    ({"id": "ok-2", "seed": 2, "pid": 1, "solver_threads": 1}, "lacks 'threads', 'value'"),
-    ({"id": "ok-2", "seed": 2, "pid": 1, "threads": 1, "solver_threads": 1, "value": "1.5"},
+    ({"id": "ok-2", "seed": 2, "pid": 1, "solver_threads": 1, "shows_progress": False},
+     "lacks 'threads', 'value'"),
+    ({"id": "ok-2", "seed": 2, "pid": 1, "threads": 1, "solver_threads": 1,
+      "shows_progress": False, "value": "1.5"},
      "holds '1.5' under 'value' where the other rows hold a number"),
     ({"id": "ok-2", "seed": 2}, "holds no results, only its cell's configuration"),
 ])
