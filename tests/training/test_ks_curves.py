@@ -102,9 +102,9 @@ def test_the_paper_size_counts_the_papers_updates():
     assert ks_curves.paper_updates("ONE", split) == 36 * 4999 // 48 * 240 == 899_760
 
 
-def test_the_table_ends_with_each_seeds_median_over_the_last_points():
-    """Seed 0: WIG < NOG < ONE in every point but one spike of WIG's, which the median of the
-    window ignores; seed 1: NOG above ONE throughout. 12 points: the last 10 are the window."""
+def test_the_table_ends_with_each_seeds_median_over_the_last_quarter():
+    """Seed 0: WIG < NOG < ONE in every point but one spike of WIG's, which the median over the
+    last quarter of the updates (9000-11000 of 11000) ignores; seed 1: NOG above ONE."""
     curves = {("ONE", 0): 3e-4, ("NOG", 0): 2e-4, ("WIG", 0): 1e-4,
               ("ONE", 1): 2e-4, ("NOG", 1): 4e-4, ("WIG", 1): 1e-4}
     rows = []
@@ -114,7 +114,8 @@ def test_the_table_ends_with_each_seeds_median_over_the_last_points():
         rows.append({"mode": mode, "seed": seed, "paper_updates": 100_000, "curve": curve,
                      "updates": curve[-1][0], "rel_error": curve[-1][1]})
     last = ks_curves.table(rows).splitlines()[-3]
-    assert last.startswith("each seed's median over the last 10 points (2000–11000 updates), "
+    assert last.startswith("each seed's median over its last 3 points (9000–11000 updates), "
                            "mean ± std over seeds:")
     assert "WIG 1.000e-04 ± 0.00e+00" in last and "ONE 2.500e-04 ± 5.00e-05" in last
     assert last.endswith("WIG<NOG<ONE 1/2")
+    assert ks_curves.trailing([0, 1000, 2000, 3000, 4000], 4) == [3000, 4000]

@@ -128,8 +128,9 @@ def _reached(run_dir: Path) -> int:
     return int(curve[-1]["updates"]) if curve else 0
 
 
-#: the evaluation points over which the table's last line takes each seed's median error
-WINDOW = 10
+#: the share of the updates, back from a point, over which the table's last line and the
+#: plot's bold curves take each seed's median error (a constant width on the plot's log axis)
+TAIL = 0.25
 
 
 def row(cell: dict, run_dir: Path) -> dict:
@@ -196,11 +197,17 @@ def table(rows: list[dict]) -> str:
         with np.errstate(invalid="ignore"):
             lines.append(f"{m} at its last point, {last} updates: {np.mean(e):.3e} ± "
                          f"{np.std(e):.2e}")
-    if len(common) > WINDOW and set(MODES) <= set(modes):
-        lines.append(_window_line(by, seeds, common[-WINDOW:]))
+    if len(common) > 1 and set(MODES) <= set(modes):
+        lines.append(_window_line(by, seeds, trailing(common, len(common) - 1)))
     lines.append("paper (80 epochs):  " + "  ".join(f"{m} {PAPER_ERRORS[m]:.1e}" for m in modes))
     lines.append("paper updates: " + ", ".join(f"{m} {paper[m]:,}" for m in modes))
     return "\n".join(lines)
+
+
+def trailing(updates: list[int], k: int) -> list[int]:
+    """The evaluation points of ``updates`` (sorted) from ``(1 − TAIL)`` of ``updates[k]`` up
+    to it."""
+    return [u for u in updates[: k + 1] if u >= (1 - TAIL) * updates[k]]
 
 
 def _window_line(by: dict[str, dict[int, dict[int, float]]], seeds: list[int],
@@ -213,7 +220,7 @@ def _window_line(by: dict[str, dict[int, dict[int, float]]], seeds: list[int],
     cols = [f"{m} {np.mean(list(avg[m].values())):.3e} ± {np.std(list(avg[m].values())):.2e}"
             for m in MODES]
     order = sum(avg["WIG"][s] < avg["NOG"][s] < avg["ONE"][s] for s in seeds)
-    return (f"each seed's median over the last {len(window)} points ({window[0]}–{window[-1]} "
+    return (f"each seed's median over its last {len(window)} points ({window[0]}–{window[-1]} "
             "updates), mean ± std over seeds: " + ", ".join(cols)
             + f"; WIG<NOG<ONE {order}/{len(seeds)}")
 
@@ -227,8 +234,9 @@ def _marks(updates: list[int]) -> list[int]:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    """Test error against updates, log-log: each seed thin, the mean over seeds bold, the
-    paper's 80-epoch figure dashed, one colour per mode."""
+    """Test error against updates, log-log: each seed thin, bold the mean over seeds of each
+    seed's median over the last :data:`TAIL` of its updates, the paper's 80-epoch figure dashed, one
+    colour per mode."""
     plt = pyplot()
     by = _by_mode(rows)
     colours = {"ONE": "tab:blue", "NOG": "tab:orange", "WIG": "tab:green"}
@@ -241,8 +249,11 @@ def plot(rows: list[dict], path: Path) -> None:
             ax.plot(us, [pts[u][seed] for u in us], color=colours[mode], lw=0.7, alpha=0.5)
         full = sorted(u for u in pts if len(pts[u]) == len(seeds))
         if full:  # markers: a curve of one point so far shows too
-            ax.plot(full, [np.mean(list(pts[u].values())) for u in full], color=colours[mode],
-                    lw=2, marker="o", ms=3, label=f"{mode}, mean of {len(seeds)} seeds")
+            # as the table's last line: a single evaluation's spike does not move it
+            running = [np.mean([np.median([pts[v][s] for v in trailing(full, k)])
+                                for s in seeds]) for k in range(len(full))]
+            ax.plot(full, running, color=colours[mode], lw=2, marker="o", ms=3,
+                    label=f"{mode}, {len(seeds)} seeds' median over the last {TAIL:.0%} updates")
         ax.axhline(PAPER_ERRORS[mode], color=colours[mode], ls="--", lw=1,
                    label=f"{mode}, paper (80 epochs)")
     paper = max(r["paper_updates"] for r in rows)
