@@ -213,9 +213,9 @@ def trailing(updates: list[int], k: int) -> list[int]:
 def _window_line(by: dict[str, dict[int, dict[int, float]]], seeds: list[int],
                  window: list[int]) -> str:
     """Each seed's median error over the evaluation points ``window``, then mean ± std over
-    seeds, and the paper's ordering on those medians: one 12-step evaluation moves by tens of
-    percent from one point to the next (a rollout of the held learning rate's latest update),
-    and the median of several is not pulled by one spike."""
+    seeds, and the paper's ordering on those medians: one 12-step evaluation scores the weights
+    of a single update at the held learning rate and moves by tens of percent from one point to
+    the next; the median of several is not pulled by one spike."""
     avg = {m: {s: float(np.median([by[m][u][s] for u in window])) for s in seeds} for m in MODES}
     cols = [f"{m} {np.mean(list(avg[m].values())):.3e} ± {np.std(list(avg[m].values())):.2e}"
             for m in MODES]
@@ -235,8 +235,8 @@ def _marks(updates: list[int]) -> list[int]:
 
 def plot(rows: list[dict], path: Path) -> None:
     """Test error against updates, log-log: each seed thin, bold the mean over seeds of each
-    seed's median over the last :data:`TAIL` of its updates, the paper's 80-epoch figure dashed, one
-    colour per mode."""
+    seed's median over the last :data:`TAIL` of its updates, the paper's 80-epoch figure
+    dashed, one colour per mode."""
     plt = pyplot()
     by = _by_mode(rows)
     colours = {"ONE": "tab:blue", "NOG": "tab:orange", "WIG": "tab:green"}
