@@ -329,7 +329,9 @@ def check_edge_case(stepper, n, batch, dtype, keys, seed) -> None:
               dtype)
     if n == 0 or batch == 0:
         assert calls == {"forward": 0, "adjoint": 0, "steps": 0}
-        close(ref.state, dense.sum(axis=0) if n == 0 else ref.state, dtype)
+        if n == 0:
+            close(ref.state, dense.sum(axis=0), dtype)
+        assert ref.state.shape == u.shape
         assert all(v == 0.0 for v in ref.params.values())
     np.testing.assert_array_equal(u, inputs[0])  # inputs are never modified
     if ctrl is not None:
@@ -380,10 +382,13 @@ def test_float32_stays_float32_and_agrees_with_float64(name):
     if c is not None:
         assert g32.controls.dtype == np.float32
         pairs.append((g32.controls, g64.controls))
+    # float32 round-off over 5 steps measured at most 3.4e-6 of the scale (ns2d, advdiff2d):
+    # room for it, not for a float32 path that loses precision beyond round-off
+    tol = 5e-5
     for a, b in pairs:
-        assert np.abs(a - b).max() <= 2e-3 * max(np.abs(b).max(), 1.0), name
+        assert np.abs(a - b).max() <= tol * max(np.abs(b).max(), 1.0), name
     for k, v in g64.params.items():
-        assert abs(g32.params[k] - v) <= 2e-3 * max(abs(v), 1.0), (name, k)
+        assert abs(g32.params[k] - v) <= tol * max(abs(v), 1.0), (name, k)
 
 
 # ------------------------------------------------------------ a non-finite stored trajectory

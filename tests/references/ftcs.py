@@ -2,18 +2,13 @@
 
 import numpy as np
 
+from .implicit_diffusion import second_difference
+
 
 def laplacian(u: np.ndarray, stepper) -> np.ndarray:
     """Δ_h u over the trailing grid axes, with the stepper's boundary condition."""
-    out = np.zeros_like(u)
-    mode = {"periodic": "wrap", "dirichlet": "constant", "neumann": "edge"}[stepper.bc]
-    for axis in range(u.ndim - stepper.ndim, u.ndim):
-        pad = [(0, 0)] * u.ndim
-        pad[axis] = (1, 1)
-        p = np.pad(u, pad, mode=mode)
-        n = u.shape[axis]
-        out += (p.take(range(0, n), axis) - 2 * u + p.take(range(2, n + 2), axis)) / stepper.h**2
-    return out
+    return sum(second_difference(u, axis, stepper.bc)
+               for axis in range(u.ndim - stepper.ndim, u.ndim)) / stepper.h**2
 
 
 def rollout(stepper, u0: np.ndarray, n: int) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Implicit diffusion (backward Euler, Crank–Nicolson / ADI): gradients, accuracy, invariants."""
+"""Diffusion, implicit (backward Euler, Crank–Nicolson / ADI) and explicit (FTCS): gradients,
+accuracy, invariants."""
 
 
 import numpy as np
@@ -7,6 +8,8 @@ import pytest
 import adjointsim.solvers.implicit_diffusion as implicit
 from adjointsim.check import check_stepper
 from adjointsim.grid import nodes
+from adjointsim.solvers.ftcs import FTCSDiffusion1D, FTCSDiffusion2D
+from tests.references.ftcs import ROLLOUTS as FTCS_ROLLOUTS
 from tests.references.implicit_diffusion import ROLLOUTS
 
 CLASSES = [
@@ -217,3 +220,63 @@ def test_batch_one_is_bitwise_equal_on_one_and_two_threads(cls):
         results.append((last, g.state, g.controls, np.array(list(g.params.values()))))
     for a, b in zip(*results):
         assert a.tobytes() == b.tobytes()
+
+
+# ----------------------------------------------------------------------------- (f) FTCS
+FTCS = [FTCSDiffusion1D, FTCSDiffusion2D]
+ftcs_ids = [c.name for c in FTCS]
+
+
+@pytest.mark.parametrize("bc", BCS)
+@pytest.mark.parametrize("cls", FTCS, ids=ftcs_ids)
+def test_ftcs_matches_numpy_reference(cls, bc):
+    for n, forcing in ((3, False), (11, True)):
+        g = forcing_profile(cls, n) if forcing else None
+        stepper = cls(n=n, bc=bc, nu=0.4, forcing=g, forcing_amplitude=0.3)
+        u0 = stepper.random_state(np.random.default_rng(n), 3)
+        np.testing.assert_allclose(stepper.rollout(u0, 9), FTCS_ROLLOUTS[cls.name](stepper, u0, 9),
+                                   rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("bc", BCS)
+@pytest.mark.parametrize("cls", FTCS, ids=ftcs_ids)
+def test_ftcs_eigenmode_grows_by_its_amplification_factor(cls, bc):
+    """A discrete eigenmode of Δ_h is multiplied by 1 + ν Δt λ_h at every step, exactly."""
+    nu, n, steps = 0.5, 16, 40
+    u0, lam, _ = product_mode(cls, n, bc)
+    stepper = cls(n=n, bc=bc, nu=nu)
+    u = stepper.rollout(u0, steps)
+    np.testing.assert_allclose(u, (1 + nu * stepper.dt * lam) ** steps * u0, rtol=0,
+                               atol=1e-13 * np.abs(u0).max())
+
+
+@pytest.mark.parametrize("bc", BCS)
+@pytest.mark.parametrize("cls", FTCS, ids=ftcs_ids)
+def test_ftcs_space_time_order_against_the_pde(cls, bc):
+    """FTCS at a fixed diffusion number (Δt ∝ h²) against the continuous solution: the time
+    error O(Δt) and the space error O(h²) make it second order in h."""
+    nu, T = 0.2, 0.05
+    errors = []
+    for n in (16, 32, 64):
+        grid_mode, _, kappa2 = product_mode(cls, n, bc)
+        stepper = cls(n=n, bc=bc, nu=nu, dt=0.4 / (nu * sum(cls(n=n, bc=bc).inv_h2)))
+        steps = round(T / stepper.dt)
+        u = stepper.rollout(grid_mode, steps)
+        exact = np.exp(nu * kappa2 * steps * stepper.dt) * grid_mode
+        errors.append(np.abs(u - exact).max() / np.abs(exact).max())
+    assert np.all(np.abs(observed_orders(errors) - 2) < 0.15), errors
+
+
+@pytest.mark.parametrize("bc", BCS)
+@pytest.mark.parametrize("cls", FTCS, ids=ftcs_ids)
+def test_ftcs_keeps_the_maximum_principle_up_to_its_limit(cls, bc):
+    """At the stability limit every update is a convex combination of neighbours: the peak
+    never grows, and mass is conserved where the boundary lets none out."""
+    stepper = cls(n=12, bc=bc, nu=0.7, dt=0.5 / (0.7 * sum(cls(n=12, bc=bc).inv_h2)))
+    traj = stepper.rollout(stepper.random_state(np.random.default_rng(2), 3), 60, keep="all")
+    flat = traj.reshape(61, 3, -1)
+    assert np.all(np.diff(np.abs(flat).max(axis=2), axis=0) <= 1e-13)
+    if bc != "dirichlet":
+        mass = flat.sum(axis=2)
+        np.testing.assert_allclose(mass, np.broadcast_to(mass[0], mass.shape), rtol=0,
+                                   atol=1e-11)
