@@ -154,14 +154,14 @@ def test_bugs_keep_their_traceback_and_ctrl_c_says_how_to_resume(tiny, tmp_path,
         raise ZeroDivisionError("a bug")
 
     monkeypatch.setattr(adjointsim.train.trainer, "train", bug)
-    with pytest.raises(ZeroDivisionError):
+    with pytest.raises(ZeroDivisionError, match="a bug"):
         main(["train", "--data", str(tiny), "--out", str(tmp_path / "r"), *TINY])
 
     def lookup_bug(*args, **kwargs):
         return {}["a missing key"]
 
     monkeypatch.setattr(adjointsim.train.trainer, "train", lookup_bug)
-    with pytest.raises(KeyError):
+    with pytest.raises(KeyError, match="a missing key"):
         main(["train", "--data", str(tiny), "--out", str(tmp_path / "r"), *TINY])
     # An unknown solver name is the user's KeyError: one line.
     assert "unknown solver 'no-such-solver'" in _one_line_error(

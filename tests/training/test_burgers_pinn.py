@@ -44,7 +44,8 @@ def test_training_run_logs_weights_and_metrics(tmp_path):
     assert result["misfit"] == history[-1]["misfit"] and len(result["fitted_u0"]) == 128
     # the viscosity demo learns ν from its start, 2 ν_true
     nu = run_pinn(BurgersPinnConfig(**TINY, demo="burgers-nu"), tmp_path / "nu")
-    assert nu["nu"] != nu["true_nu"] and abs(nu["nu"] / (2 * nu["true_nu"]) - 1) < 0.1
+    # ν must have moved off its start: a frozen ν would sit at 2 ν_true to round-off
+    assert 1e-3 < abs(nu["nu"] / (2 * nu["true_nu"]) - 1) < 0.1
 
 
 def test_interrupted_run_resumes_to_the_same_rows(tmp_path, monkeypatch):

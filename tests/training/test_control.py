@@ -95,6 +95,9 @@ def test_modes_stop_the_paths_they_name():
     # M and R differ only by the network-input path: equal when that path carries nothing
     r, m = control_grads("R"), control_grads("M")
     assert r[-1] == pytest.approx(m[-1], rel=1e-12) and r[0] != pytest.approx(m[0], rel=1e-6)
+    # N and R differ only by the physics path, which the last control's gradient does not take
+    n = control_grads("N")
+    assert r[-1] == pytest.approx(n[-1], rel=1e-12) and r[0] != pytest.approx(n[0], rel=1e-6)
 
 
 def adjointsim_step(task, x, c):

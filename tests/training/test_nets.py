@@ -29,8 +29,17 @@ def test_conv_nets_are_translation_equivariant_on_periodic_grids(make, dims):
 
 
 def test_mlp_activations():
-    for act in ("sin", "tanh", "relu"):
-        assert MLP(3, 2, width=8, depth=2, activation=act)(torch.randn(5, 3)).shape == (5, 2)
+    # a shape alone would pass with any activation (or none) between the layers
+    torch.manual_seed(0)
+    x = torch.randn(5, 3)
+    for act, fn in (("sin", torch.sin), ("tanh", torch.tanh), ("relu", torch.relu)):
+        mlp = MLP(3, 2, width=8, depth=2, activation=act)
+        *hidden, last = [m for m in mlp.modules() if isinstance(m, torch.nn.Linear)]
+        assert len(hidden) == 2
+        h = x
+        for layer in hidden:
+            h = fn(layer(h))
+        torch.testing.assert_close(mlp(x), last(h), rtol=0, atol=0)
     with pytest.raises(ValueError, match="unknown activation"):
         MLP(3, 2, activation="swish2")
 

@@ -526,7 +526,8 @@ def test_ks_inverse_run_adds_terms_in_phases_and_learns_coefficients_last(tmp_pa
     assert [p["active"] for p in phases] == [["data"], ["data", "periodic"],
                                              ["data", "periodic", "res"]]
     # α and β enter the residual only: untouched until it joins
-    assert phases[0]["alpha"] == phases[1]["beta"] == 0.5 and phases[2]["alpha"] != 0.5
+    for name in ("alpha", "beta"):
+        assert phases[0][name] == phases[1][name] == 0.5 != phases[2][name], name
     assert set(result["coefficients"]) == {"alpha", "beta"}
     refreshes = read_history(tmp_path / "run" / "weights.csv")
     assert [r["step"] for r in refreshes] == [0, 0, 5]

@@ -416,7 +416,7 @@ def test_dataset_write_is_atomic(tiny, tmp_path, monkeypatch):
         raise RuntimeError("disk full")
 
     monkeypatch.setattr("h5py.Group.create_dataset", boom)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="disk full"):  # the write failed, nothing else
         datamod.save(ds, target)
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["d.h5"]
