@@ -108,7 +108,12 @@ class Study:
     as one ensemble (``("seed",)``, say), or a function of the cell that gives them; the runner
     submits one task per group of cells equal in every other key, and ``run_group(cells,
     run_dirs)`` returns their rows in order. A group with finished cells runs only the others;
-    each cell still gets its own row file."""
+    each cell still gets its own row file.
+
+    ``turns`` (with ``pack``): the keys that split a group into parts taking turns inside its
+    task (an ensemble per mode, say: ``("mode",)``). In one process the group stays one task;
+    on a cluster of k workers its parts are dealt into up to k tasks, the largest part first
+    to the task with the fewest cells, so that they train side by side."""
 
     name: str
     sizes: tuple[str, ...]
@@ -119,6 +124,7 @@ class Study:
     row_keys: RowKeys | Callable[[dict], RowKeys] | None = None
     pack: tuple[str, ...] | Callable[[dict], tuple[str, ...]] = ()
     run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
+    turns: tuple[str, ...] = ()
     so_far: Callable[[Path, str, int | None], list[dict]] | None = None
 
     def expected_keys(self, cell: dict) -> RowKeys | None:
@@ -722,8 +728,10 @@ def execute_group(run_group: Callable[[list[dict], list[Path]], list[dict]], cel
     return rows
 
 
-def _tasks(study: Study, todo: list[dict], out: Path) -> list[tuple[list[dict], Callable, tuple]]:
-    """What to submit: per cell, or per group where the study packs cells."""
+def _tasks(study: Study, todo: list[dict], out: Path,
+           workers: int) -> list[tuple[list[dict], Callable, tuple]]:
+    """What to submit to ``workers`` workers: per cell, or per group where the study packs
+    cells (a group's parts dealt among the workers where the study names its ``turns``)."""
     if not study.pack:
         return [([c], execute, (study.run_cell, c, str(out / c["id"]))) for c in todo]
     groups: dict[tuple, list[dict]] = {}
@@ -731,7 +739,24 @@ def _tasks(study: Study, todo: list[dict], out: Path) -> list[tuple[list[dict], 
         free = study.pack(c) if callable(study.pack) else study.pack
         key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", *free))
         groups.setdefault(key, []).append(c)
-    return [(g, execute_group, (study.run_group, g, str(out))) for g in groups.values()]
+    return [(share, execute_group, (study.run_group, share, str(out)))
+            for g in groups.values() for share in _deal(g, study.turns, workers)]
+
+
+def _deal(group: list[dict], turns: tuple[str, ...], workers: int) -> list[list[dict]]:
+    """``group`` in up to ``workers`` shares: its parts (cells equal under ``turns``) kept
+    whole, the largest first to the share with the fewest cells; each share in the group's
+    order."""
+    parts: dict[tuple, list[dict]] = {}
+    for c in group:
+        parts.setdefault(tuple(str(c.get(k)) for k in turns), []).append(c)
+    if not turns or workers < 2 or len(parts) < 2:
+        return [group]
+    shares: list[list[dict]] = [[] for _ in range(min(workers, len(parts)))]
+    for part in sorted(parts.values(), key=len, reverse=True):
+        min(shares, key=len).extend(part)
+    order = {c["id"]: i for i, c in enumerate(group)}
+    return [sorted(share, key=lambda c: order[c["id"]]) for share in shares]
 
 
 def _one_line(exc: BaseException) -> str:
@@ -740,7 +765,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _run_here(study: Study, todo: list[dict], out: Path, retries: int, done) -> None:
-    for cells, work, args in _tasks(study, todo, out):
+    for cells, work, args in _tasks(study, todo, out, workers=1):
         for attempt in range(retries + 1):
             try:
                 rows = work(*args)
@@ -806,7 +831,7 @@ def _run_on_dask(client, study: Study, todo: list[dict], out: Path, retries: int
     from distributed.client import FutureCancelledError
 
     futures = {}
-    tasks = _tasks(study, todo, out)
+    tasks = _tasks(study, todo, out, workers=sum(client.nthreads().values()))
     for i, (cells, work, args) in enumerate(tasks):
         # cells start in the study's order (higher priority first): a study stopped early
         # has the cells it lists first

@@ -87,3 +87,7 @@ register_study(Study("runner-packed", ("ok",), packed_cells, run_cell, report,
 register_study(Study("runner-packed-by-cell", ("ok",), packed_cells, run_cell, report,
                      pack=lambda c: ("seed", "kind") if c["kind"] == "a" else ("seed",),
                      run_group=run_group))
+
+
+register_study(Study("runner-turns", ("ok",), packed_cells, run_cell, report,
+                     pack=("seed", "kind"), run_group=run_group, turns=("kind",)))

@@ -435,6 +435,28 @@ def test_a_study_may_pack_each_cell_by_its_own_keys(tmp_path):
     assert _calls(out) == ["a-0 a-1", "b-0 b-1"]
 
 
+def test_a_group_taking_turns_is_one_task_here_and_dealt_among_workers_on_a_cluster(tmp_path):
+    """The parts of a group that take turns (here the kinds) train in one task in one process,
+    and side by side, a task each, on a cluster of two workers; the rows are the same."""
+    here, there = tmp_path / "here", tmp_path / "there"
+    runner.run("runner-turns", here, "ok", 2, cluster="none", progress=False)
+    assert _calls(here) == ["a-0 a-1 b-0 b-1"]
+    runner.run("runner-turns", there, "ok", 2, cluster="local", jobs=2, progress=False)
+    assert sorted(_calls(there)) == ["a-0 a-1", "b-0 b-1"]
+    rows = [json.loads((d / "rows.json").read_text()) for d in (here, there)]
+    assert [r["id"] for r in rows[0]] == [r["id"] for r in rows[1]]
+    assert [r["members"] for r in rows[0]] == [4] * 4 and [r["members"] for r in rows[1]] == [2] * 4
+
+
+def test_parts_are_dealt_whole_the_largest_first_to_the_emptiest_share():
+    group = [{"id": f"{kind}{k}", "kind": kind} for kind, n in (("a", 1), ("b", 3), ("c", 2))
+             for k in range(n)]
+    ids = [[c["id"] for c in share] for share in runner._deal(group, ("kind",), 2)]
+    assert ids == [["b0", "b1", "b2"], ["a0", "c0", "c1"]]
+    assert len(runner._deal(group, ("kind",), 8)) == 3
+    assert runner._deal(group, ("kind",), 1) == [group] == runner._deal(group, (), 4)
+
+
 @pytest.mark.parametrize("progress", [True, False])
 def test_cells_run_here_show_their_runs_progress_as_the_study_does(progress, tmp_path):
     """With ``cluster="none"`` a cell's runs show their bars (an ensemble of hours taking

@@ -14,10 +14,12 @@ the loss, which its epochs of 11,243 updates make rare early on (a deviation: th
 rule's patience is not given); 8 epochs, a tenth of the paper's updates. The test error every
 1000 updates is the study tables' ``rel_error`` (12 steps, 40 test rollouts).
 
-All cells (3 modes × 3 seeds) are one task of the runner. The seeds of a mode train as one
-ensemble, and the three ensembles take turns of ``chunk`` updates, the one furthest behind
-first (:func:`adjointsim.runner.in_turns`), so every curve advances together: a study stopped
-at any time has every mode at about the same update. Each member
+The seeds of a mode train as one ensemble. In one process (``--cluster none``) the three
+ensembles take turns of ``chunk`` updates, the one furthest behind first
+(:func:`adjointsim.runner.in_turns`), so every curve advances together: a study stopped at any
+time has every mode at about the same update. On a cluster the runner deals the modes among
+its workers (:attr:`adjointsim.runner.Study.turns`): with two, one trains a mode while the
+other takes turns with the other two; with three, each has its own. Each member
 keeps its curve in ``curve.csv`` of its run directory; run again, the study continues every
 run from its checkpoint. The curves so far, finished or not, are tabulated and drawn by
 ``adjointsim study ks-curves --size paper --out OUT --so-far``.
@@ -281,5 +283,5 @@ register_study(Study(
     name="ks-curves", sizes=tuple(SIZES), cells=cells, run_cell=run_cell, report=report,
     prepare=prepare,
     row_keys={"updates": int, "paper_updates": int, "rel_error": float, "curve": list},
-    pack=("seed", "mode"), run_group=run_group, so_far=collect,
+    pack=("seed", "mode"), run_group=run_group, turns=("mode",), so_far=collect,
 ))

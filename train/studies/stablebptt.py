@@ -31,7 +31,8 @@ Cells that differ only in the seed and the clipping train together as one ensemb
 (:func:`adjointsim.train.ensemble.train_ensemble`): one task of the runner per ensemble, each
 member in its own run directory, equal to its separate run. In the ``budget`` size the modes of
 a task take turns of 50 epochs in one task of the runner, so a study stopped in any sitting
-compares R, M and C at about the same epoch.
+compares R, M and C at about the same epoch; on a cluster the runner deals the modes among its
+workers (:attr:`adjointsim.runner.Study.turns`), each worker's taking turns.
 """
 
 from __future__ import annotations
@@ -374,5 +375,6 @@ register_study(Study(
     report=report,
     pack=pack,
     run_group=run_group,
+    turns=("mode",),
     so_far=collect,
 ))
