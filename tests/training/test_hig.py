@@ -51,6 +51,18 @@ def outputs(stepper, model, theta, x):
     return stepper.rollout(x.numpy().reshape(-1, 2, 2), STEPS, ctrl).reshape(-1)
 
 
+def fd_jacobian(stepper, model, theta: np.ndarray, x) -> np.ndarray:
+    """d outputs / d theta by central differences."""
+    eps = 1e-6
+    columns = []
+    for j in range(theta.size):
+        e = np.zeros_like(theta)
+        e[j] = eps
+        columns.append((outputs(stepper, model, theta + e, x)
+                        - outputs(stepper, model, theta - e, x)) / (2 * eps))
+    return np.stack(columns, axis=1)
+
+
 def test_jacobian_matches_central_finite_differences():
     stepper, physics, model, x = small_problem()
     opt = HalfInverseGradients(model, physics, lambda y, t: ((y - t) ** 2).sum(1))
@@ -58,13 +70,7 @@ def test_jacobian_matches_central_finite_differences():
     theta = flat_params(model)
     np.testing.assert_allclose(y.reshape(-1).numpy(), outputs(stepper, model, theta, x),
                                rtol=1e-13)
-    eps = 1e-6
-    fd = np.empty((jac.shape[0], theta.size))
-    for j in range(theta.size):
-        e = np.zeros_like(theta)
-        e[j] = eps
-        fd[:, j] = (outputs(stepper, model, theta + e, x)
-                    - outputs(stepper, model, theta - e, x)) / (2 * eps)
+    fd = fd_jacobian(stepper, model, theta, x)
     assert jac.shape == (3 * 4, theta.size)
     err = np.abs(jac.numpy() - fd).max() / np.abs(fd).max()
     assert err < 1e-8, err
@@ -209,14 +215,7 @@ def test_other_models_form_the_jacobian(model):
     # the explicit J against central differences: a shared weight or a layer used twice
     # must count every use
     _, jac = opt.jacobian(x, x)
-    theta = flat_params(net)
-    eps = 1e-6
-    fd = np.empty((jac.shape[0], theta.size))
-    for j in range(theta.size):
-        e = np.zeros_like(theta)
-        e[j] = eps
-        fd[:, j] = (outputs(stepper, net, theta + e, x)
-                    - outputs(stepper, net, theta - e, x)) / (2 * eps)
+    fd = fd_jacobian(stepper, net, flat_params(net), x)
     assert np.abs(jac.numpy() - fd).max() < 1e-8 * np.abs(fd).max()
     before = flat_params(net)
     opt.step(x, x, torch.zeros(3, 4, dtype=torch.float64))  # through the explicit J
