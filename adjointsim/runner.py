@@ -112,8 +112,9 @@ class Study:
 
     ``turns`` (with ``pack``): the keys that split a group into parts taking turns inside its
     task (an ensemble per mode, say: ``("mode",)``). In one process the group stays one task;
-    on a cluster of k workers its parts are dealt into up to k tasks, the largest part first
-    to the task with the fewest cells, so that they train side by side."""
+    on a cluster of k workers its parts are dealt into up to k tasks, the costliest part first
+    to the task with the least cost so far, so that they train side by side; ``turn_cost``
+    gives a part's cost from its cells (by default their number)."""
 
     name: str
     sizes: tuple[str, ...]
@@ -125,6 +126,7 @@ class Study:
     pack: tuple[str, ...] | Callable[[dict], tuple[str, ...]] = ()
     run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
     turns: tuple[str, ...] = ()
+    turn_cost: Callable[[list[dict]], float] = len
     so_far: Callable[[Path, str, int | None], list[dict]] | None = None
 
     def expected_keys(self, cell: dict) -> RowKeys | None:
@@ -740,12 +742,14 @@ def _tasks(study: Study, todo: list[dict], out: Path,
         key = tuple((k, str(v)) for k, v in sorted(c.items()) if k not in ("id", *free))
         groups.setdefault(key, []).append(c)
     return [(share, execute_group, (study.run_group, share, str(out)))
-            for g in groups.values() for share in _deal(g, study.turns, workers)]
+            for g in groups.values()
+            for share in _deal(g, study.turns, workers, study.turn_cost)]
 
 
-def _deal(group: list[dict], turns: tuple[str, ...], workers: int) -> list[list[dict]]:
+def _deal(group: list[dict], turns: tuple[str, ...], workers: int,
+          cost: Callable[[list[dict]], float] = len) -> list[list[dict]]:
     """``group`` in up to ``workers`` shares: its parts (cells equal under ``turns``) kept
-    whole, the largest first to the share with the fewest cells; each share in the group's
+    whole, the costliest first to the share of least cost so far; each share in the group's
     order."""
     parts: dict[tuple, list[dict]] = {}
     for c in group:
@@ -753,8 +757,11 @@ def _deal(group: list[dict], turns: tuple[str, ...], workers: int) -> list[list[
     if not turns or workers < 2 or len(parts) < 2:
         return [group]
     shares: list[list[dict]] = [[] for _ in range(min(workers, len(parts)))]
-    for part in sorted(parts.values(), key=len, reverse=True):
-        min(shares, key=len).extend(part)
+    loads = [0.0] * len(shares)
+    for part in sorted(parts.values(), key=cost, reverse=True):
+        k = loads.index(min(loads))
+        shares[k].extend(part)
+        loads[k] += cost(part)
     order = {c["id"]: i for i, c in enumerate(group)}
     return [sorted(share, key=lambda c: order[c["id"]]) for share in shares]
 

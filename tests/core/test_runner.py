@@ -455,6 +455,10 @@ def test_parts_are_dealt_whole_the_largest_first_to_the_emptiest_share():
     assert ids == [["b0", "b1", "b2"], ["a0", "c0", "c1"]]
     assert len(runner._deal(group, ("kind",), 8)) == 3
     assert runner._deal(group, ("kind",), 1) == [group] == runner._deal(group, (), 4)
+    # a's one cell costing 4: it goes first and alone, b (3) and c (2) share the other share
+    double_a = [[c["id"] for c in share] for share in runner._deal(
+        group, ("kind",), 2, lambda part: len(part) * (4 if part[0]["kind"] == "a" else 1))]
+    assert double_a == [["a0"], ["b0", "b1", "b2", "c0", "c1"]]
 
 
 @pytest.mark.parametrize("progress", [True, False])

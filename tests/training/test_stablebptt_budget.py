@@ -102,3 +102,15 @@ def test_the_budget_modes_take_turns_and_equal_their_runs_in_one_go(tmp_path, mo
         whole = stablebptt.run_cell(cell, tmp_path / "whole" / cell["id"])
         assert row["test_loss"] == whole["test_loss"]
         assert row["test_history"] == whole["test_history"] and len(row["test_history"]) == 3
+
+
+
+def test_two_workers_get_the_quantum_modes_in_shares_of_equal_cost():
+    """R's ensemble of 6 compiled runs costs as much as C's 3 eager ones: R and M go to one
+    worker, C to the other."""
+    from adjointsim import runner
+
+    quantum = [c for c in stablebptt.cells("budget", None) if c["task"] == "quantum"]
+    study = runner.get_study("stablebptt")
+    shares = runner._deal(quantum, study.turns, 2, study.turn_cost)
+    assert [sorted({c["mode"] for c in share}) for share in shares] == [["M", "R"], ["C"]]

@@ -18,8 +18,8 @@ The seeds of a mode train as one ensemble. In one process (``--cluster none``) t
 ensembles take turns of ``chunk`` updates, the one furthest behind first
 (:func:`adjointsim.runner.in_turns`), so every curve advances together: a study stopped at any
 time has every mode at about the same update. On a cluster the runner deals the modes among
-its workers (:attr:`adjointsim.runner.Study.turns`): with two, one trains a mode while the
-other takes turns with the other two; with three, each has its own. Each member
+its workers (:attr:`adjointsim.runner.Study.turns`): with two, one worker trains a mode while
+the other's two take turns; with three, each has its own. Each member
 keeps its curve in ``curve.csv`` of its run directory; run again, the study continues every
 run from its checkpoint. The curves so far, finished or not, are tabulated and drawn by
 ``adjointsim study ks-curves --size paper --out OUT --so-far``.
