@@ -144,8 +144,8 @@ def pack(cell: dict) -> tuple[str, ...]:
 
 def turn_cost(cells: list[dict]) -> float:
     """A mode's share of a round of turns, for dealing the modes among workers: an eager run
-    (mode C cannot compile) costs about twice a compiled one (measured on quantum: 50 epochs of
-    an ensemble of 3 in 13–17 minutes eager, 7–8 compiled)."""
+    (mode C cannot compile) costs about twice a compiled one, as the quantum budget's
+    ensembles measure (the results page gives the times)."""
     return sum(1.0 if c.get("compile", "off") != "off" else 2.0 for c in cells)
 
 
