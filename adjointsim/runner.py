@@ -86,6 +86,11 @@ def runs_show_progress() -> bool:
     return _RUNS_SHOW.get()
 
 
+def runs(cells: list[dict], run_dirs: list[Path]) -> float:
+    """A part's cost unless its study says otherwise: its number of runs."""
+    return len(cells)
+
+
 @dataclass(frozen=True)
 class Study:
     """A grid of independent cells: ``cells(size, seeds)`` lists them (each a dict with an
@@ -113,8 +118,9 @@ class Study:
     ``turns`` (with ``pack``): the keys that split a group into parts taking turns inside its
     task (an ensemble per mode, say: ``("mode",)``). In one process the group stays one task;
     on a cluster of k workers its parts are dealt into up to k tasks, the costliest part first
-    to the task with the least cost so far, so that they train side by side; ``turn_cost``
-    gives a part's cost from its cells (by default their number)."""
+    to the task with the least cost so far, so that they train side by side; ``turn_cost(cells,
+    run_dirs)`` gives what is left of a part (by default its number of cells; a study that
+    resumes can count what its runs still have to do, so that a rerun deals afresh)."""
 
     name: str
     sizes: tuple[str, ...]
@@ -126,7 +132,7 @@ class Study:
     pack: tuple[str, ...] | Callable[[dict], tuple[str, ...]] = ()
     run_group: Callable[[list[dict], list[Path]], list[dict]] | None = None
     turns: tuple[str, ...] = ()
-    turn_cost: Callable[[list[dict]], float] = len
+    turn_cost: Callable[[list[dict], list[Path]], float] = runs
     so_far: Callable[[Path, str, int | None], list[dict]] | None = None
 
     def expected_keys(self, cell: dict) -> RowKeys | None:
@@ -743,7 +749,8 @@ def _tasks(study: Study, todo: list[dict], out: Path,
         groups.setdefault(key, []).append(c)
     return [(share, execute_group, (study.run_group, share, str(out)))
             for g in groups.values()
-            for share in _deal(g, study.turns, workers, study.turn_cost)]
+            for share in _deal(g, study.turns, workers,
+                               lambda part: study.turn_cost(part, [out / c["id"] for c in part]))]
 
 
 def _deal(group: list[dict], turns: tuple[str, ...], workers: int,

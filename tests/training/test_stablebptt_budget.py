@@ -105,12 +105,29 @@ def test_the_budget_modes_take_turns_and_equal_their_runs_in_one_go(tmp_path, mo
 
 
 
-def test_two_workers_get_the_quantum_modes_in_shares_of_equal_cost():
-    """R's ensemble of 6 compiled runs costs as much as C's 3 eager ones: R and M go to one
-    worker, C to the other."""
+def _deal_quantum(out, reached: dict[str, int]) -> list[list[str]]:
+    """The quantum budget's modes as the runner deals them to two workers, with each mode's
+    runs at the epoch ``reached`` gives (a history of that many rows in ``out``)."""
     from adjointsim import runner
 
     quantum = [c for c in stablebptt.cells("budget", None) if c["task"] == "quantum"]
+    for c in quantum:
+        (out / c["id"]).mkdir(parents=True)
+        rows = "".join(f"{e},1.0\n" for e in range(1, reached[c["mode"]] + 1))
+        (out / c["id"] / "history.csv").write_text("epoch,test_loss\n" + rows)
     study = runner.get_study("stablebptt")
-    shares = runner._deal(quantum, study.turns, 2, study.turn_cost)
-    assert [sorted({c["mode"] for c in share}) for share in shares] == [["M", "R"], ["C"]]
+    shares = [share for _, _, (_, share, _) in runner._tasks(study, quantum, out, 2)]
+    return sorted(sorted({c["mode"] for c in share}) for share in shares)
+
+
+def test_two_workers_get_the_quantum_modes_in_shares_of_equal_cost(tmp_path):
+    """At the start R's ensemble of 6 compiled runs costs about as much as C's 3 eager ones: R
+    and M go to one worker, C to the other."""
+    assert _deal_quantum(tmp_path, {"R": 0, "M": 0, "C": 0}) == [["C"], ["M", "R"]]
+
+
+def test_a_resumed_study_deals_what_is_left(tmp_path):
+    """With C nearly done and R furthest behind, R has a worker to itself and M joins C."""
+    assert _deal_quantum(tmp_path, {"R": 720, "M": 760, "C": 915}) == [["C", "M"], ["R"]]
+    assert stablebptt.turn_cost(
+        [{"epochs": 1000}], [tmp_path / "nothing"]) == 1000 * (2.0 + 2.3)

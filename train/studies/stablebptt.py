@@ -142,11 +142,20 @@ def pack(cell: dict) -> tuple[str, ...]:
     return ("seed", "clip", "mode", "compile") if "turn" in cell else ("seed", "clip")
 
 
-def turn_cost(cells: list[dict]) -> float:
-    """A mode's share of a round of turns, for dealing the modes among workers: an eager run
-    (mode C cannot compile) costs about twice a compiled one, as the quantum budget's
-    ensembles measure (the results page gives the times)."""
-    return sum(1.0 if c.get("compile", "off") != "off" else 2.0 for c in cells)
+#: an ensemble's epoch in units of one compiled run's: a share of its own (the evaluation and
+#: the loop's per-step work, whatever the members), one per compiled run and 2.3 per eager one
+#: (mode C cannot compile), as the quantum budget's ensembles of R, M and C measure
+_EPOCH_COST = {"ensemble": 2.0, "compiled": 1.0, "eager": 2.3}
+
+
+def turn_cost(cells: list[dict], run_dirs: list[Path]) -> float:
+    """What is left of a mode's ensemble, for dealing the modes among workers: the epochs its
+    runs have still to train (from the slowest member's history) times an epoch's cost, so
+    that a study resumed in a later sitting deals what remains afresh."""
+    kinds = ["compiled" if c.get("compile", "off") != "off" else "eager" for c in cells]
+    epoch = _EPOCH_COST["ensemble"] + sum(_EPOCH_COST[k] for k in kinds)
+    reached = min(_epochs(d) for d in run_dirs)
+    return epoch * max(cells[0]["epochs"] - reached, 0)
 
 
 def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
@@ -160,7 +169,7 @@ def run_group(cells: list[dict], run_dirs: list[Path]) -> list[dict]:
         groups.setdefault(c["mode"], []).append(i)
 
     def reached(group: list[int]) -> int:
-        return min(_epochs(cfgs[i]) for i in group)
+        return min(_epochs(cfgs[i].out) for i in group)
 
     def advance(group: list[int], to: int) -> None:
         train_ensemble([cfgs[i] for i in group], resume=True, progress=runs_show_progress(),
@@ -184,8 +193,9 @@ def _history(run_dir: Path | str) -> list[dict]:
     return read_history(path) if path.exists() else []
 
 
-def _epochs(cfg: ControlConfig) -> int:
-    history = _history(cfg.out)
+def _epochs(run_dir: Path | str) -> int:
+    """The epochs the run in ``run_dir`` has trained."""
+    history = _history(run_dir)
     return int(history[-1]["epoch"]) if history else 0
 
 
