@@ -34,7 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("evaluate", "evaluate a trained run: errors, correlation time, stability, plots, "
              "metrics.json"),
     "control": ("control", "train a controller through a simulator (cartpole, guidance, "
-                "quantum; R/M/S/N/C)"),
+                "heat, quantum; R/M/S/N/C)"),
     "hig": ("hig", "train through a solver with half-inverse gradients, Gauss-Newton or Adam"),
     "pinn": ("pinn", "physics-informed training with loss balancing (inverse-Dirichlet, "
              "GradNorm, ReLoBRaLo, PCGrad, ConFIG, ...)"),

@@ -17,7 +17,7 @@ STUDIES = {
     "kolmogorov": "the same on 2D Kolmogorov flow",
     "karman": "the same on the cylinder wake (sequential correction)",
     "ks-curves": "learning curves of KS correction, ONE, NOG and WIG",
-    "stablebptt": "controllers with the gradient flows R, M, S, N and C",
+    "stablebptt": "controllers with the gradient flows R, M, S and C",
     "hig": "half-inverse gradients against Gauss-Newton and Adam",
     "pinn-poisson": "multi-scale Poisson PINN: uniform vs inverse-Dirichlet",
     "pinn-ks-inverse": "KS coefficients learned by a PINN, with loss balancing",
