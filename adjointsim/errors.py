@@ -14,7 +14,8 @@ class ConfigTypeError(UserError, TypeError):
 
 
 class DamagedFileError(UserError):
-    """A file whose checksum does not match its contents (the message says how to recover)."""
+    """A file that cannot be what was written: its checksum does not match, or its rows are cut
+    short (the message says how to recover)."""
 
 
 class Interrupted(KeyboardInterrupt):

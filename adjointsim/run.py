@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from .errors import ConfigTypeError, RunExists, UserError
+from .errors import ConfigTypeError, DamagedFileError, RunExists, UserError
 from .files import log_axis, pyplot, save_figure, write_text
 
 
@@ -201,9 +201,20 @@ def write_history(path: str | Path, rows: Sequence[dict], fields: Sequence[str])
 
 
 def read_history(path: str | Path) -> list[dict]:
-    """The rows of a history CSV, numbers as int or float, True/False as bool."""
+    """The rows of a history CSV, numbers as int or float, True/False as bool; a row with
+    more or fewer fields than the header is a damaged file."""
     with open(path, newline="") as f:
-        return [{k: _value(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        reader = csv.DictReader(f)
+        rows = []
+        for row in reader:
+            extra = row.pop(None, [])  # csv's key for fields beyond the header
+            given = sum(v is not None for v in row.values()) + len(extra)
+            if given != len(row):
+                raise DamagedFileError(
+                    f"{path} is damaged: line {reader.line_num} has {given} fields, its header "
+                    f"{len(row)}; restore the file, or start the run again with --overwrite")
+            rows.append({k: _value(v) for k, v in row.items()})
+        return rows
 
 
 def _value(text: str) -> Any:

@@ -321,7 +321,10 @@ def _address_problem(address: str) -> str | None:
                 "prints both; the scheduler's port is 8786 by default)")
     if scheme not in _SCHEMES:
         return f"scheme {scheme!r} is not one of {', '.join(_SCHEMES)}"
-    parts = urlsplit(f"//{location}")
+    try:
+        parts = urlsplit(f"//{location}")
+    except ValueError as e:  # an unbalanced IPv6 bracket, say
+        return f"not an address ({e})"
     if parts.path or parts.query or parts.fragment:
         return f"{location[len(parts.netloc):]!r} follows HOST:PORT"
     if not parts.hostname:

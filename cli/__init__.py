@@ -111,3 +111,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"adjointsim {command}: {' '.join(str(message).split())}", file=sys.stderr)
         return 2
+    except MemoryError as e:  # a grid, batch or ensemble too large for this machine
+        if os.environ.get("ADJOINTSIM_TRACEBACK"):
+            raise
+        print(f"adjointsim {command}: not enough memory ({' '.join(str(e).split())}); choose a "
+              "smaller grid (--scene n=...), batch or ensemble", file=sys.stderr)
+        return 2

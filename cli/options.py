@@ -143,7 +143,16 @@ def resume_command(command: str, out: Path, args: argparse.Namespace | None) -> 
 
 def json_option(p: argparse.ArgumentParser, help_text: str = "also write the result rows "
                 "here as JSON") -> None:
-    p.add_argument("--json", type=Path, default=None, metavar="PATH", help=help_text)
+    p.add_argument("--json", type=_json_path, default=None, metavar="PATH", help=help_text)
+
+
+def _json_path(text: str) -> Path:
+    # checked before the run, not when its result is written at the end
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory; give a file, such as "
+                                         f"{path / 'result.json'}")
+    return path
 
 
 def progress_option(p: argparse.ArgumentParser) -> None:

@@ -226,6 +226,27 @@ def test_every_training_command_takes_json_path(tiny, tmp_path, capsys):
         assert "--json PATH" in capsys.readouterr().out, command
 
 
+@pytest.mark.parametrize("command", ["train", "control", "hig", "pinn", "fit", "gradcheck",
+                                     "study"])
+def test_json_into_a_directory_is_refused_before_the_run(command, tmp_path, capsys):
+    err = _one_line_error(capsys, command, "--json", tmp_path, command=command)
+    assert f"argument --json: {tmp_path} is a directory; give a file, such as " in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_run_too_large_for_memory_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    import adjointsim.cli.control as control
+
+    def huge(args):
+        raise MemoryError("Unable to allocate 3.64 TiB for an array")
+
+    monkeypatch.setattr(control, "run", huge)
+    err = _one_line_error(capsys, "control", "quantum", "--out", tmp_path / "q",
+                          command="control")
+    assert err == ("adjointsim control: not enough memory (Unable to allocate 3.64 TiB for an "
+                   "array); choose a smaller grid (--scene n=...), batch or ensemble\n")
+
+
 @pytest.mark.parametrize("command", ["gradcheck", "bench", "fit", "data", "eval", "train",
                                      "control", "pinn", "hig"])
 def test_every_command_that_runs_solvers_takes_threads(command, capsys):

@@ -300,3 +300,17 @@ def test_the_bar_is_drawn_at_tqdms_pace_with_the_figure_of_the_update_it_counts(
     (bar,) = Bar.bars
     assert bar.forced == 0
     assert bar.drawn == [(1, {"x": 0.5}), (2, {"x": 0.75}), (3, {"x": 0.875})]
+
+
+@pytest.mark.parametrize("line, fields", [("3,0.5", 2), ("3,0.5,1,7", 4)])
+def test_a_history_row_cut_short_or_too_long_is_a_damaged_file(tmp_path, line, fields):
+    from adjointsim.errors import DamagedFileError
+    from adjointsim.run import read_history, write_history
+
+    path = tmp_path / "history.csv"
+    write_history(path, [{"epoch": 1, "loss": 0.25, "ok": True}], ("epoch", "loss", "ok"))
+    assert read_history(path) == [{"epoch": 1, "loss": 0.25, "ok": True}]
+    path.write_text(path.read_text() + line + "\n")
+    with pytest.raises(DamagedFileError, match=f"{path} is damaged: line 3 has {fields} fields, "
+                       "its header 3; restore the file, or start the run again with --overwrite"):
+        read_history(path)

@@ -13,6 +13,7 @@ import gc
 import http.server
 import json
 import os
+import re
 import signal
 import socket
 import socketserver
@@ -236,10 +237,12 @@ def test_an_address_where_nothing_listens_is_refused_in_seconds(tmp_path, monkey
     ("tcp://127.0.0.1:abc", "port 'abc'"), ("127.0.0.1:99999", "port '99999'"),
     ("tcp://127.0.0.1:0", "port '0'"), ("tpc://127.0.0.1:8786", "scheme 'tpc'"),
     ("http://127.0.0.1:8787", "dashboard"), ("tcp://127.0.0.1:8786/x", "'/x'"),
+    ("tcp://[::1:8786", "not an address"),
 ])
 def test_a_malformed_address_is_refused_before_anything(address, says, tmp_path,
                                                         monkeypatch):
-    with pytest.raises(ValueError, match=f"--cluster '{address}': .*{says}.*tcp://HOST:8786"):
+    with pytest.raises(ValueError,
+                       match=f"--cluster '{re.escape(address)}': .*{says}.*tcp://HOST:8786"):
         runner.run("runner-test", tmp_path, "ok", 1, cluster=address, progress=False)
     monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", address)
     with pytest.raises(ValueError, match=r"\$DASK_SCHEDULER_ADDRESS '"):
