@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 from .errors import DamagedFileError, Interrupted, RunExists, UserError
-from .files import json_text, uninterrupted, write_json
+from .files import Keys, json_text, unfit, uninterrupted, write_json
 from .run import Config, differing, discard, read_result, write_history
 
 #: the longest wall time between two checkpoints of a running run, in seconds
@@ -70,14 +70,15 @@ class Problem:
     value of an :attr:`EXTENDABLE` key continues a finished run (its length; None: no limit),
     :attr:`HISTORIES` names each history file and its columns, :attr:`RUN_FILES` the other
     files a run writes (discarded by ``overwrite``), :attr:`RESULT_KEYS` what a result must
-    hold. The methods below are what a run does; the defaults fit a problem without state.
+    hold (each key with its type, checked when a finished run is read back). The methods
+    below are what a run does; the defaults fit a problem without state.
     """
 
     RESUMABLE: ClassVar[tuple[str, ...]] = ("out", "threads")
     EXTENDABLE: ClassVar[tuple[str, ...]] = ()
     HISTORIES: ClassVar[dict[str, tuple[str, ...]]] = {}
     RUN_FILES: ClassVar[tuple[str, ...]] = ()
-    RESULT_KEYS: ClassVar[tuple[str, ...]] = ()
+    RESULT_KEYS: ClassVar[Keys] = {}
     #: config keys added since earlier versions, and keys those versions had that are gone:
     #: a run of an earlier version is still this command's (refused with the keys it differs
     #: in, discarded by ``overwrite``), not somebody else's files
@@ -288,11 +289,14 @@ class RunDir:
             raise RunExists(f"{out} holds {what}")
         if finished and not longer:
             result = read_result(out / RESULT)
-            missing = [k for k in (*self.config, *self.problem.RESULT_KEYS)
+            missing = [k for k in self.config
                        if k not in result and k not in self.problem.RESUMABLE]
-            if missing:
-                raise RunExists(f"{out / RESULT} is damaged (it lacks {', '.join(missing)}); "
-                                "delete it to finish the run again from its checkpoint")
+            problem = (f"lacks {', '.join(map(repr, missing))}" if missing
+                       else unfit(result, self.problem.RESULT_KEYS))
+            if problem:
+                again = "from its checkpoint" if self.problem.STORE else "from the start"
+                raise RunExists(f"{out / RESULT} is damaged (it {problem}); delete it to finish "
+                                f"the run again {again}")
             return Claim(result=result)
         if not has_ckpt:
             if finished:

@@ -17,7 +17,7 @@ import math
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -229,3 +229,36 @@ def json_text(obj: Any, indent: int | None = 2) -> str:
 
 def write_json(path: str | Path, obj: Any) -> None:
     write_text(path, json_text(obj) + "\n")
+
+
+#: the keys a JSON object must hold, each with its type or types (:func:`unfit`)
+Keys = Mapping[str, type | tuple[type, ...]]
+
+
+def unfit(obj: dict, expected: Keys) -> str | None:
+    """What the JSON object ``obj`` (a result, a row) lacks of the ``expected`` keys, or its
+    first value of another type; None if it holds them all. ``float`` also admits an int and
+    null (JSON writes 2.0 as 2, and a non-finite number as null)."""
+    missing = [k for k in expected if k not in obj]
+    if missing:
+        return f"lacks {', '.join(map(repr, missing))}"
+    for key, types in expected.items():
+        kinds = types if isinstance(types, tuple) else (types,)
+        if not _fits(obj[key], kinds):
+            names = " or ".join(t.__name__ for t in kinds)
+            return f"holds {short(obj[key])} under {key!r}, not a {names}"
+    return None
+
+
+def _fits(value: Any, types: tuple[type, ...]) -> bool:
+    if float in types:
+        types = (*types, int, type(None))
+    if isinstance(value, bool):
+        return bool in types
+    return isinstance(value, types)
+
+
+def short(value: Any) -> str:
+    """``repr(value)``, cut to 40 characters for a message."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."

@@ -327,7 +327,9 @@ class FitRun(engine.Problem):
     ADDED = ("solver",)
     HISTORIES: ClassVar = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("observations.h5", "fitted.h5", "fit.png", "history.png")
-    RESULT_KEYS = ("scene", "misfit", "params", "iterations")
+    RESULT_KEYS: ClassVar = {"scene": str, "misfit": float, "start_misfit": float,
+                             "params": dict, "iterations": int, "seconds": float,
+                             "message": str}
     ATOMIC = False
 
     def __init__(self, config: FitConfig, out: str | Path, plots: bool = True):

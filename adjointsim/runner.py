@@ -45,7 +45,7 @@ import time
 import uuid
 import warnings
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from functools import cache
@@ -57,7 +57,7 @@ from tqdm.auto import tqdm
 
 from adjointsim import parallel
 from adjointsim.errors import UserError
-from adjointsim.files import write_text
+from adjointsim.files import Keys, short, unfit, write_text
 
 ROW_FILE = "row.json"
 LOCK_FILE = ".study.lock"
@@ -71,7 +71,7 @@ _SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
 # what adjointsim.files.json_text adds to a row holding non-finite numbers (a --json file)
 _NOTE_KEYS = frozenset({"non_finite"})
 
-RowKeys = Mapping[str, type | tuple[type, ...]]
+RowKeys = Keys
 
 # on while this process runs cells with the study's progress bar on (``cluster="none"``); off
 # on a Dask worker, whose bars would not reach the study's terminal
@@ -367,7 +367,7 @@ def _read_row(cell: dict, run_dir: Path, expected: RowKeys | None
     if differ:
         raise ValueError(f"{path} holds a result of another configuration (differs in "
                          f"{differ}); use another --out, or delete {run_dir} to redo the cell")
-    problem = _resultless(cell, row) or (_unfit(row, expected) if expected is not None
+    problem = _resultless(cell, row) or (unfit(row, expected) if expected is not None
                                          else None)
     return (None, problem) if problem else (row, None)
 
@@ -423,16 +423,16 @@ def _reusable(study: Study, cells: list[dict], size: str, path: str | Path,
                             f"configuration (differs in {differ}); it belongs to another "
                             "size or version of the study")
         adopted[cell["id"]] = row
-    unfit = _unfit_rows(study, cells, adopted, {**finished, **adopted})
-    if not unfit and adopted:
+    refused = _unfit_rows(study, cells, adopted, {**finished, **adopted})
+    if not refused and adopted:
         rows = [{**finished, **adopted}[i] for i in ids if i in finished or i in adopted]
         error = _report_error(study, rows)
         if error is not None:
             named = _breaking(study, rows, error) or list(adopted)
-            unfit = [(named[0], f"breaks the study's report ({_one_line(error)})"),
+            refused = [(named[0], f"breaks the study's report ({_one_line(error)})"),
                      *((cid, "") for cid in named[1:])]
-    if unfit:
-        (first, problem), *more = unfit
+    if refused:
+        (first, problem), *more = refused
         others = (f"; and {len(more)} more row{'s' * (len(more) > 1)} "
                   f"({_listed([cid for cid, _ in more])})" if more else "")
         raise UserError(f"--reuse {path}: its row {first!r} {problem}{others}; nothing was "
@@ -478,18 +478,18 @@ def _unfit_rows(study: Study, cells: list[dict], candidates: dict[str, dict],
             groups.setdefault(_kind_of(cell), []).append(known[cell["id"]])
     peers = {sig: _Peers(rows) for sig, rows in groups.items()}
     kinds = _ValueKinds([known[c["id"]] for c in cells if c["id"] in known])
-    unfit = []
+    refused = []
     for cell in cells:
         row = candidates.get(cell["id"])
         if row is None:
             continue
         expected = study.expected_keys(cell)
         problem = _resultless(cell, row) or (
-            _unfit(row, expected) if expected is not None
+            unfit(row, expected) if expected is not None
             else peers[_kind_of(cell)].unfit(row) or kinds.unfit(row))
         if problem:
-            unfit.append((cell["id"], problem))
-    return unfit
+            refused.append((cell["id"], problem))
+    return refused
 
 
 def _resultless(cell: dict, row: dict) -> str | None:
@@ -548,9 +548,9 @@ class _ValueKinds:
                 continue
             (other_kind, ids), = others.items()
             if len(ids) == 1:
-                return (f"holds {_short(value)} under {key!r} where row {ids[0]!r} holds a "
+                return (f"holds {short(value)} under {key!r} where row {ids[0]!r} holds a "
                         f"{other_kind} (one of the two is damaged)")
-            return f"holds {_short(value)} under {key!r} where the other rows hold a {other_kind}"
+            return f"holds {short(value)} under {key!r} where the other rows hold a {other_kind}"
         return None
 
 
@@ -562,33 +562,6 @@ def _kind(value: Any) -> str:
     if isinstance(value, int | float):
         return "number"
     return {str: "string", list: "list", dict: "object"}.get(type(value), type(value).__name__)
-
-
-def _unfit(row: dict, expected: RowKeys) -> str | None:
-    """What ``row`` lacks of the declared ``expected`` keys, or the first value of another
-    type."""
-    missing = [k for k in expected if k not in row]
-    if missing:
-        return f"lacks {', '.join(map(repr, missing))}"
-    for key, types in expected.items():
-        if not _fits(row[key], types if isinstance(types, tuple) else (types,)):
-            names = " or ".join(t.__name__ for t in
-                                (types if isinstance(types, tuple) else (types,)))
-            return f"holds {_short(row[key])} under {key!r}, not a {names}"
-    return None
-
-
-def _fits(value: Any, types: tuple[type, ...]) -> bool:
-    if float in types:  # JSON holds 2 for 2.0 and null for a non-finite number
-        types = (*types, int, type(None))
-    if isinstance(value, bool):
-        return bool in types
-    return isinstance(value, types)
-
-
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def in_turns(groups: list[Any], reached: Callable[[Any], int], total: Callable[[Any], int],
@@ -946,7 +919,7 @@ def _ask_scheduler(address: str) -> None:
                            "the scheduler's address (the one `dask worker` was given)")
     if kind != "Scheduler":
         raise ClusterError(f"{address} does not answer as a Dask scheduler (it says "
-                           f"{_short(identity)}); {check}")
+                           f"{short(identity)}); {check}")
 
 
 async def _identity(address: str) -> Any:

@@ -168,7 +168,8 @@ class BurgersPinnRun(engine.Problem):
     EXTENDABLE = ("epochs", "seconds")
     HISTORIES = {"history.csv": ("epoch", "seconds", *(f"loss/{t}" for t in TERMS),
                                  *(f"weight/{t}" for t in TERMS), "misfit", "u0_mse", "nu")}
-    RESULT_KEYS = ("epochs", "seconds", "misfit", "u0_mse", "nu", "weights")
+    RESULT_KEYS = {"epochs": int, "seconds": float, "misfit": float, "u0_mse": float,
+                   "nu": float, "weights": dict}
     STORE = STORE
     UNIT = "epoch"
 

@@ -283,8 +283,9 @@ class Controller(engine.Problem):
     RETIRED = ("poles", "target", "control_weight")
     HISTORIES = {"history.csv": HISTORY_KEYS}
     RUN_FILES = ("test_loss.png", "rollout.png")
-    RESULT_KEYS = ("test_loss", "train_loss", "test_terms", "weights", "parameters", "seconds",
-                   "diverged")
+    RESULT_KEYS = {"test_loss": float, "train_loss": float, "test_terms": dict,
+                   "weights": (dict, type(None)), "parameters": int, "seconds": float,
+                   "diverged": bool}
     UNIT = "epoch"
     STORE = STORE
 

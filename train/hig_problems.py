@@ -109,7 +109,7 @@ class HigRun(engine.Problem):
     ADDED = ("scene",)
     HISTORIES: ClassVar = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("loss.png",)
-    RESULT_KEYS = ("wall_s", "updates", "test_loss", "diverged")
+    RESULT_KEYS = {"wall_s": float, "updates": int, "test_loss": float, "diverged": bool}
     STORE = STORE
     UNIT = "s"
 

@@ -171,8 +171,8 @@ class PinnRun(engine.Problem):
 
     RESUMABLE = ("threads", "compile")
     RUN_FILES = ("field.png", "history.png")
-    RESULT_KEYS = ("rel_l2", "diverged", "skipped", "seconds", "weights", "coefficients",
-                   "phases")
+    RESULT_KEYS = {"rel_l2": float, "diverged": bool, "skipped": int, "seconds": float,
+                   "weights": dict, "coefficients": dict, "phases": list}
     STORE = STORE
     UNIT = "epoch"
 

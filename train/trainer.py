@@ -299,7 +299,8 @@ class StepperRun(engine.Problem):
     ADDED = ("scene",)
     HISTORIES = {"history.csv": HISTORY_FIELDS}
     RUN_FILES = ("training.png", "results.json", "metrics.json", "rollout-*.png")
-    RESULT_KEYS = ("iterations", "final_loss", "skipped", "rollbacks", "parameters")
+    RESULT_KEYS = {"iterations": int, "final_loss": float, "skipped": int, "rollbacks": int,
+                   "parameters": int}
     UNIT = "it"
     STORE = STORE
 

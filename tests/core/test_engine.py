@@ -42,7 +42,7 @@ class Count(engine.Problem):
     EXTENDABLE = ("epochs",)
     HISTORIES = {"history.csv": ("epoch", "x")}
     RUN_FILES = ("x.txt",)
-    RESULT_KEYS = ("x",)
+    RESULT_KEYS = {"x": float}
     STORE = JsonStore()
     UNIT = "epoch"
     stop_at: int | None = None
@@ -314,3 +314,21 @@ def test_a_history_row_cut_short_or_too_long_is_a_damaged_file(tmp_path, line, f
     with pytest.raises(DamagedFileError, match=f"{path} is damaged: line 3 has {fields} fields, "
                        "its header 3; restore the file, or start the run again with --overwrite"):
         read_history(path)
+
+
+@pytest.mark.parametrize("damage, says", [
+    (lambda r: r.pop("x"), "it lacks 'x'"),
+    (lambda r: r.update(x="0.97"), "it holds '0.97' under 'x', not a float"),
+    (lambda r: r.pop("rate"), "it lacks 'rate'"),
+])
+def test_a_finished_result_of_the_wrong_keys_or_types_is_damaged(tmp_path, damage, says):
+    out = tmp_path / "r"
+    engine.run(count(out, epochs=2), progress=False)
+    result = json.loads((out / "result.json").read_text())
+    damage(result)
+    (out / "result.json").write_text(json.dumps(result))
+    with pytest.raises(RunExists, match=f"result.json is damaged \\({says}\\); delete it to "
+                       "finish the run again from its checkpoint"):
+        engine.run(count(out, epochs=2), resume=True, progress=False)
+    (out / "result.json").unlink()
+    assert engine.run(count(out, epochs=2), resume=True, progress=False)["x"] == 0.75
