@@ -260,7 +260,10 @@ class RunDir:
                                 "without --resume to start it")
             return Claim()
         if theirs is None or not self.ours(theirs):
-            raise another_commands(out, "no readable config.json" if theirs is None else None)
+            unread = ("a config.json that cannot be read: if this is this command's run, the "
+                      "file is damaged; restore it" if (out / CONFIG).exists()
+                      else "no readable config.json")
+            raise another_commands(out, unread if theirs is None else None)
         if overwrite:
             return Claim(discard=True)
         differ = differing(self.config, theirs, self.free)

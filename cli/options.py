@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from adjointsim.errors import DamagedFileError
 from adjointsim.run import unwrap
 
 
@@ -108,12 +109,16 @@ def resumed(args: argparse.Namespace, default_out: Callable[[], Path], problem: 
     out = args.out if args.out is not None else default_out()
     seeds = getattr(args, "seeds", None)
     for folder in [out / f"seed{s}" for s in seeds] if seeds else [out]:
+        path = folder / "config.json"
         try:
-            theirs = json.loads((folder / "config.json").read_text())
+            theirs = json.loads(path.read_text())
+        except FileNotFoundError:
+            continue
         except (OSError, ValueError, UnicodeDecodeError):
-            continue
+            theirs = None
         if not isinstance(theirs, dict):
-            continue
+            raise DamagedFileError(f"--resume: {path} is not a readable config (damaged?); "
+                                   "restore it, or choose another --out")
         if not same_command(problem, (f.name for f in dataclasses.fields(cls)), theirs):
             raise another_commands(folder)
         return theirs

@@ -173,3 +173,14 @@ def test_resume_of_another_commands_run_is_refused_by_name(command, tmp_path, ca
     assert main([command, "--resume", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "holds another command's run" in err, err
+
+
+@pytest.mark.parametrize("command", ["control", "hig", "pinn", "train"])
+def test_resume_of_a_run_whose_config_is_damaged_names_the_file(command, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text('{"task": "cartpole", "mode": "C", "cl')
+    assert main([command, "--resume", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"adjointsim {command}: --resume: {out / 'config.json'} is not a readable "
+                   "config (damaged?); restore it, or choose another --out\n")

@@ -332,3 +332,15 @@ def test_a_finished_result_of_the_wrong_keys_or_types_is_damaged(tmp_path, damag
         engine.run(count(out, epochs=2), resume=True, progress=False)
     (out / "result.json").unlink()
     assert engine.run(count(out, epochs=2), resume=True, progress=False)["x"] == 0.75
+
+
+def test_a_config_that_cannot_be_read_is_named_and_its_run_left_alone(tmp_path):
+    out = tmp_path / "r"
+    engine.run(count(out, epochs=2), progress=False)
+    (out / "config.json").write_text('{"epochs": 2, "ra')
+    for overwrite in (False, True):
+        with pytest.raises(RunExists, match="a config.json that cannot be read: if this is this "
+                           "command's run, the file is damaged; restore it"):
+            engine.run(count(out, epochs=2), resume=not overwrite, overwrite=overwrite,
+                       progress=False)
+    assert (out / "checkpoint.pt").exists() and (out / "result.json").exists()
