@@ -26,7 +26,7 @@ import os
 import tomllib
 import types
 import typing
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -116,15 +116,25 @@ class Config:
             what = f"; accepted: {cls.accepted(key)}" if key in cls.ACCEPTED else ""
             raise UserError(f"config key {key!r} is needed{what}")
         cfg = cls(**values)
-        cfg.validate(f" in {path}" if path is not None else "")
+        given = {k for layer in (file, overrides) for k, v in layer.items() if v is not None}
+        kept = set(recorded or ()) - given  # a wrong value there is the run file's, not the user's
+
+        def where(key: str) -> str:
+            if key in kept:
+                return " in the run's config.json"
+            return f" in {path}" if path is not None else ""
+
+        cfg.validate(where)
         return cfg
 
-    def validate(self, where: str = "") -> None:
+    def validate(self, where: str | Callable[[str], str] = "") -> None:
         """Check every field's type and accepted values, then :meth:`check`; ints given for
-        float fields become floats."""
+        float fields become floats. ``where`` (or ``where(key)``) says where a value came
+        from, for the messages."""
         hints = typing.get_type_hints(type(self))
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
             key, value = f.name, getattr(self, f.name)
+            at = where(key) if callable(where) else where
             expected, optional = unwrap(hints[key])
             if value is None and optional:
                 continue
@@ -135,18 +145,18 @@ class Config:
             wrong_bool = isinstance(value, bool) and expected is not bool
             if not isinstance(value, expected) or wrong_bool:
                 raise ConfigTypeError(
-                    f"config key {key!r}{where}: {value!r} ({type(value).__name__}) is not "
+                    f"config key {key!r}{at}: {value!r} ({type(value).__name__}) is not "
                     f"{_TYPE_NAMES[expected]}; accepted: {self.accepted(key)}")
             rule = self.ACCEPTED.get(key)
             if isinstance(rule, tuple) and value not in rule:
-                raise UserError(f"config key {key!r}{where}: {value!r} is not one of "
+                raise UserError(f"config key {key!r}{at}: {value!r} is not one of "
                                 f"{', '.join(map(str, rule))}")
             if isinstance(rule, Interval) and value not in rule:
-                raise UserError(f"config key {key!r}{where}: {value!r} is not "
+                raise UserError(f"config key {key!r}{at}: {value!r} is not "
                                 f"{self.accepted(key)}")
             if isinstance(rule, str) and expected is str and not value:
-                raise UserError(f"config key {key!r}{where}: needs {rule}")
-        self.check(where)
+                raise UserError(f"config key {key!r}{at}: needs {rule}")
+        self.check(where("") if callable(where) else where)
 
     def check(self, where: str) -> None:
         """Rules that tie keys together, or that :attr:`ACCEPTED` states in words."""

@@ -184,3 +184,18 @@ def test_resume_of_a_run_whose_config_is_damaged_names_the_file(command, tmp_pat
     err = capsys.readouterr().err
     assert err == (f"adjointsim {command}: --resume: {out / 'config.json'} is not a readable "
                    "config (damaged?); restore it, or choose another --out\n")
+
+
+def test_a_wrong_value_in_a_runs_recorded_config_is_named_as_the_files(tmp_path, capsys):
+    from adjointsim.train.control import ControlConfig
+
+    out = tmp_path / "run"
+    out.mkdir()
+    recorded = {**ControlConfig(task="cartpole", out=str(out)).as_dict(), "lr": "0.001"}
+    (out / "config.json").write_text(json.dumps(recorded))
+    assert main(["control", "--resume", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("adjointsim control: config key 'lr' in the run's config.json: "
+                          "'0.001' (str) is not"), err
+    assert main(["control", "--resume", "--out", str(out), "--lr", "x"]) == 2
+    assert "'x'" in capsys.readouterr().err  # the flag's own value is checked as the flag's
