@@ -111,10 +111,23 @@ def read_observations(path: str | Path, solver: str | None) -> dict[str, Any]:
                 raise UserError(f"{path}: attribute {key!r} must be a JSON object")
             return value
 
+        def attr_count(key: str) -> int | None:
+            if key not in f.attrs:
+                return None
+            value = f.attrs[key]
+            try:
+                count = float(value) if np.ndim(value) == 0 else -1.0
+            except (TypeError, ValueError):  # a string, say
+                count = -1.0
+            if not (count >= 0 and count.is_integer()):
+                raise UserError(f"{path}: attribute {key!r} must be an integer ≥ 0, not "
+                                f"{value!r}")
+            return int(count)
+
         out = {"scene": name, "config": attr_json("config"), "params": attr_json("params"),
                "truth_params": attr_json("truth_params"),
                "steps": np.asarray(f["steps"][()]), "states": np.asarray(f["states"][()]),
-               "n": int(f.attrs["n"]) if "n" in f.attrs else None}
+               "n": attr_count("n")}
         for key in ("u0", "controls", "truth/u0", "truth/controls"):
             out[key] = np.asarray(f[key][()]) if key in f else None
     steps, states = out["steps"], out["states"]

@@ -220,7 +220,15 @@ def test_fit_command(tmp_path, capsys):
     write_observations(text_param, demo_problem("burgers"))
     with h5py.File(text_param, "a") as f:
         f.attrs["params"] = json.dumps({"nu": "abc"})
+    bad_n = {}
+    for name, value in (("text", "abc"), ("array", np.array([32, 32])), ("half", 31.5)):
+        bad_n[name] = tmp_path / f"n-{name}.h5"
+        write_observations(bad_n[name], demo_problem("burgers"))
+        with h5py.File(bad_n[name], "a") as f:
+            f.attrs["n"] = value
     for argv, message in [
+        *[(["--observations", str(path)], f"{path}: attribute 'n' must be an integer ≥ 0, not ")
+          for path in bad_n.values()],
         (["--observations", str(complex_obs)], "/states has dtype complex128"),
         (["--observations", str(obs), "--steps", "0"], "step 16 is outside the rollout"),
         (["--observations", str(text_param)], "'params': nu must be a number, not 'abc'"),
