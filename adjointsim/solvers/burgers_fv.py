@@ -33,6 +33,9 @@ from ..registry import register
 from ..stepper import Choice, Range, Stepper
 from .advection import smooth_noise
 
+#: the most substeps a step takes when dt alone sets them: beyond it a dt is a slip of units
+MAX_SUBSTEPS = 100_000
+
 
 @njit(cache=True, nogil=True)
 def burgers_forward(states, n, ctrl, p, dt, substeps, inv_hx, inv_hy, inv_hx2, inv_hy2):
@@ -265,6 +268,11 @@ class BurgersScene(Stepper):
         else:
             self.dt = validate.number(name, "dt", dt, gt=0)
             fewest = max(1, math.ceil(self.dt * self._rate(nu)))
+            if substeps is None and fewest > MAX_SUBSTEPS:
+                raise ValueError(
+                    f"{name}: dt = {self.dt:g} needs {fewest:,} substeps to stay stable (the "
+                    f"largest stable substep is {1 / self._rate(nu):.4g}), more than the "
+                    f"{MAX_SUBSTEPS:,} chosen unasked; choose a smaller dt, or pass substeps")
             self.substeps = fewest if substeps is None else substeps
         self.check_params(np.array(self.param_values))
 

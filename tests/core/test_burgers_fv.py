@@ -129,6 +129,21 @@ def test_pbdl_preset_reaches_t1_with_a_shock():
     np.testing.assert_allclose(u, -u[::-1], atol=1e-12)  # stays odd about x = 0
 
 
+def test_a_dt_of_too_many_substeps_is_refused_unless_they_are_asked_for():
+    """With substeps chosen from dt, dt = 1e9 (a slip of units) would take 3·10^10 substeps a
+    step: refused, naming the largest stable substep; given, substeps are the caller's."""
+    from adjointsim.solvers.burgers_fv import MAX_SUBSTEPS
+
+    limit = 1 / (1.0 / (2 / 64))  # u_max / h at ν = 0
+    with pytest.raises(ValueError, match=r"dt = 1e\+09 needs .* substeps to stay stable \(the "
+                       r"largest stable substep is 0.03125\), more than the 100,000 chosen "
+                       "unasked; choose a smaller dt, or pass substeps"):
+        BurgersRusanov1D(n=64, nu=0.0, amplitude=1.0, dt=1e9, substeps=None)
+    assert BurgersRusanov1D(n=64, nu=0.0, amplitude=1.0, dt=limit * MAX_SUBSTEPS,
+                            substeps=None).substeps == MAX_SUBSTEPS
+    assert BurgersRusanov1D(n=64, nu=0.0, amplitude=1.0, dt=1.0, substeps=64).substeps == 64
+
+
 # ------------------------------------------------------------------ invariants
 @pytest.mark.parametrize(
     "stepper",
