@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -49,6 +50,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} is a directory; give the path of the HDF5 file to write")
     if out.exists() and not args.overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it, or choose another --out")
+    # a folder that cannot be written fails now, not after the data are made
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"cannot make the folder {out.parent} ({e.strerror}); choose another "
+                        "--out") from None
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise UserError(f"cannot write into {out.parent}; choose another --out")
     problem = get_problem(args.problem, DataConfig.load(args.config, scene=scene_of(args)).scene)
     parallel.set_threads(args.threads)
     data.save(data.generate(problem, args.size, args.seed, progress=args.progress), out)

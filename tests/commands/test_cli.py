@@ -271,3 +271,18 @@ def test_threads_sets_the_solver_threads(capsys):
         parallel.set_threads(None)
     assert main(["gradcheck", "cartpole", "--threads", "0"]) == 2
     assert "--threads: must be ≥ 1, not 0" in capsys.readouterr().err
+
+
+def test_data_refuses_an_out_it_cannot_write_before_making_the_data(tmp_path, capsys,
+                                                                  monkeypatch):
+    from adjointsim.train import data
+
+    def never(*args, **kwargs):
+        raise AssertionError("the data were made before --out was checked")
+
+    monkeypatch.setattr(data, "generate", never)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    err = _one_line_error(capsys, "data", "ks", "--size", "tiny", "--out", blocker / "ks.h5",
+                          command="data")
+    assert f"cannot make the folder {blocker} (" in err and "choose another --out" in err
