@@ -105,15 +105,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             hint += f", or just: {resume_command(command, e.out, args)}"
         print(f"adjointsim {command}: interrupted; {hint}", file=sys.stderr)
         return 130
-    except USER_ERRORS as e:
+    except (*USER_ERRORS, MemoryError) as e:
         if os.environ.get("ADJOINTSIM_TRACEBACK"):
             raise
         message = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        if isinstance(e, MemoryError):  # a grid, batch or ensemble too large for this machine
+            message = (f"not enough memory ({message}); choose a smaller grid (--scene n=...), "
+                       "batch or ensemble")
         print(f"adjointsim {command}: {' '.join(str(message).split())}", file=sys.stderr)
-        return 2
-    except MemoryError as e:  # a grid, batch or ensemble too large for this machine
-        if os.environ.get("ADJOINTSIM_TRACEBACK"):
-            raise
-        print(f"adjointsim {command}: not enough memory ({' '.join(str(e).split())}); choose a "
-              "smaller grid (--scene n=...), batch or ensemble", file=sys.stderr)
         return 2
