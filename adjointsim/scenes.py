@@ -29,3 +29,10 @@ def build(solver: str | type[Stepper], scene: dict[str, Any],
         return cls(**scene, **fixed)
     except TypeError as e:  # a value of the wrong type: the solver's message names the key
         raise ValueError(str(e)) from None
+    except ValueError as e:
+        # numpy's words for an array too large to index name no key; like a grid too large
+        # to allocate, it is a size the machine cannot hold
+        if str(e) != "Maximum allowed size exceeded":
+            raise
+        raise MemoryError(f"{cls.name} with {scene} asks for arrays larger than numpy can "
+                          "index") from None

@@ -247,6 +247,15 @@ def test_a_run_too_large_for_memory_is_a_one_line_error(tmp_path, capsys, monkey
                    "array); choose a smaller grid (--scene n=...), batch or ensemble\n")
 
 
+def test_a_grid_beyond_numpys_largest_array_is_the_same_one_line_error(tmp_path, capsys):
+    # numpy says "Maximum allowed size exceeded", naming no key, for a size it cannot index
+    err = _one_line_error(capsys, "fit", "--demo", "ks-params", "--scene", f"n={10**30}",
+                          "--out", tmp_path / "f", command="fit")
+    assert err.startswith("adjointsim fit: not enough memory (ks1d-etdrk4 with {'n': 10000")
+    assert "asks for arrays larger than numpy can index); choose a smaller grid" in err
+    assert not (tmp_path / "f").exists()
+
+
 @pytest.mark.parametrize("command", ["gradcheck", "bench", "fit", "data", "eval", "train",
                                      "control", "pinn", "hig"])
 def test_every_command_that_runs_solvers_takes_threads(command, capsys):
