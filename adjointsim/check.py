@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from . import registry
+from . import registry, validate
 from .stepper import Stepper
 
 #: thresholds per dtype: dot-product rel. error and the largest reference error estimate that
@@ -113,9 +113,14 @@ def check_stepper(
     """Check the adjoint of ``stepper`` for its state, controls and every scene parameter."""
     if dtype not in TOLERANCES:
         raise ValueError(f"dtype must be one of {sorted(TOLERANCES)}, not {dtype!r}")
-    if int(steps) != steps or steps < 1:
-        raise ValueError(f"steps must be a positive integer, not {steps!r}")
-    steps = int(steps)
+    steps = validate.count(stepper.name, "steps", steps, why="the rollout to check")
+    if steps < 1:
+        raise ValueError(f"{stepper.name}: steps must be a positive integer, not {steps!r}")
+    # an empty batch has no gradient to compare: the contract tests cover it without a check
+    batch = validate.count(stepper.name, "batch", batch, why="the states to check")
+    if batch < 1:
+        raise ValueError(f"{stepper.name}: batch must be a positive integer, not {batch!r}: "
+                         "an empty batch has no gradient to check")
     rng = np.random.default_rng(seed)
     real = np.dtype(dtype)
     u0 = stepper.random_state(rng, batch, real)

@@ -23,6 +23,7 @@ any of its gradient-based methods can be named. Everything runs in float64.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -31,6 +32,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
+from .files import short
 from .stepper import NonFiniteStateError, Stepper
 
 #: scipy methods that use the gradient (and so the adjoint)
@@ -256,6 +258,8 @@ def problem(
                          f"{', '.join(GRADIENT_METHODS)}")
     fit_state, fit_controls, fit_names = parse_wrt(stepper, wrt)
     for what, lam in (("tikhonov", tikhonov), ("smoothness", smoothness)):
+        if isinstance(lam, bool) or not isinstance(lam, numbers.Real):
+            raise TypeError(f"{what} must be a finite number ≥ 0, not {short(lam)}")
         if not (math.isfinite(lam) and lam >= 0):
             raise ValueError(f"{what} must be a finite number ≥ 0, not {lam}")
 

@@ -279,6 +279,7 @@ class Stepper:
         that a linear scheme's state cotangent never reads, a silently wrong parameter gradient.
         """
         u0, n, ctrl, p = self.prepare(u0, n, controls, params)
+        wrt_params = validate.flag(self.name, "wrt_params", wrt_params)
         cot, cmap = self.check_cotangents(cotangents, n, u0)
         if trajectory is not None:
             trajectory = self.check_trajectory(trajectory, n, u0)
@@ -404,8 +405,9 @@ class Stepper:
     def check_trajectory(self, trajectory: np.ndarray, n: int, u0: np.ndarray) -> np.ndarray:
         """The stored states u_0 .. u_n of an ``n``-step rollout from the checked state ``u0``
         (what ``rollout(..., keep="all")`` returns), checked: shape (n + 1, B, C, *grid), the
-        state's dtype, finite."""
-        return self._check_per_step(
+        state's dtype, finite, starting at ``u0`` (a trajectory of other inputs would give a
+        wrong gradient without a word; its other states are not recomputed to check them)."""
+        trajectory = self._check_per_step(
             trajectory, ("trajectory has", "trajectory holds"), (n + 1, *u0.shape), u0.dtype, n,
             f', the {n + 1} states u_0 .. u_{n} that rollout(..., keep="all") returns for the '
             "same inputs",
@@ -413,6 +415,13 @@ class Stepper:
             '; no rollout returns one: pass rollout(..., keep="all") of the same inputs, or no '
             "trajectory to have the states recomputed",
         )
+        if not np.array_equal(trajectory[0], u0):
+            raise ValueError(
+                f"{self.name}: trajectory[0] is not u0, so the trajectory is of another rollout; "
+                'pass rollout(..., keep="all") of the same inputs, or no trajectory to have the '
+                "states recomputed"
+            )
+        return trajectory
 
     def _check_per_step(
         self, a: Any, what: tuple[str, str], expected: tuple[int, ...], dtype: np.dtype,
@@ -612,9 +621,24 @@ class Stepper:
                           cmap[:n], ubar, cbar, pbar, wrt_params)
         else:
             budget = n + 2 if checkpoint is None else int(checkpoint)
-            _AdjointSweep(
+            sweep = _AdjointSweep(
                 self, controls, params, cotangents, cmap, ubar, cbar, pbar, wrt_params
-            ).reverse(u0.astype(ubar.dtype, copy=False), n, budget)
+            )
+            try:
+                sweep.reverse(u0.astype(ubar.dtype, copy=False), n, budget)
+            except MemoryError as e:
+                if checkpoint is not None:
+                    raise
+                raise self.keep_all_error(n, e) from None
+
+    def keep_all_error(self, n: int, error: MemoryError) -> MemoryError:
+        """The error of a reverse pass that could not keep the ``n + 1`` states of its rollout,
+        naming the way around: binomial checkpointing."""
+        return MemoryError(
+            f"{self.name}: keeping the {n + 1} states of the rollout for the reverse pass needs "
+            f"more memory than there is ({error}); pass checkpoint=s to hold at most s ≥ "
+            f"{MIN_CHECKPOINT} states and recompute the others"
+        )
 
     def _run(
         self, u0: np.ndarray, n: int, ctrl: np.ndarray, p: np.ndarray, keep_all: bool

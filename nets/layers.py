@@ -3,6 +3,9 @@ replicate padding for domains with walls and open sides."""
 
 from __future__ import annotations
 
+import numbers
+
+import torch
 from torch import nn
 
 #: torch's padding modes a network accepts: periodic, zero, or the edge value repeated
@@ -16,8 +19,28 @@ def conv(dims: int, c_in: int, c_out: int, kernel: int = 3, dilation: int = 1,
         raise ValueError(f"dims must be 1 or 2, not {dims}")
     if padding not in PADDINGS:
         raise ValueError(f"padding must be one of {', '.join(PADDINGS)}, not {padding!r}")
+    for name, value in (("channels", c_in), ("channels", c_out), ("kernel", kernel),
+                        ("dilation", dilation)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+            raise ValueError(f"{name} must be an integer ≥ 1, not {value!r}")
+    if kernel % 2 == 0:  # an even kernel has no centre: the output would grow by a point
+        raise ValueError(f"kernel must be odd to keep the grid size, not {kernel}")
     cls = nn.Conv1d if dims == 1 else nn.Conv2d
     return cls(
         c_in, c_out, kernel, padding=dilation * (kernel // 2), dilation=dilation,
         padding_mode=padding,
     )
+
+
+def check_input(net: str, x: torch.Tensor, dims: int, channels: int, smallest: int = 1) -> None:
+    """Refuse an input a network of ``dims`` grid axes and ``channels`` input channels cannot
+    take, naming the network: torch's own errors name a layer's padding or weights instead.
+    ``smallest`` is the least grid size (a circular pad cannot wrap a grid more than once)."""
+    grid = "N" if dims == 1 else "H, W"
+    if x.ndim != dims + 2 or x.shape[1] != channels:
+        raise ValueError(f"{net} takes a tensor of shape (batch, {channels}, {grid}), not "
+                         f"{tuple(x.shape)}")
+    if min(x.shape[2:]) < smallest:
+        raise ValueError(f"{net} needs at least {smallest} grid points per axis (its widest "
+                         f"kernel wraps a smaller periodic grid more than once), not "
+                         f"{tuple(x.shape[2:])}")

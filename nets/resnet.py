@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .layers import conv
+from .layers import check_input, conv
 
 PRESETS = {"small": (26, 8), "large": (52, 12)}
 
@@ -39,6 +39,8 @@ class ResNet(nn.Module):
     ):
         super().__init__()
         dilations = dilations or (1,) * blocks
+        self.dims, self.in_channels = dims, in_channels
+        self.smallest = max(dilations) * (kernel // 2) if padding == "circular" else 1
         self.encode = conv(dims, in_channels, width, kernel, padding=padding)
         self.blocks = nn.Sequential(*[_Block(dims, width, kernel, d, padding) for d in dilations])
         self.decode = conv(dims, width, out_channels, kernel, padding=padding)
@@ -53,4 +55,5 @@ class ResNet(nn.Module):
         return cls(in_channels, out_channels, dims, width, blocks)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        check_input(type(self).__name__, x, self.dims, self.in_channels, self.smallest)
         return self.decode(self.blocks(self.encode(x)))

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .layers import conv
+from .layers import check_input, conv
 
 
 def _double(dims: int, c_in: int, c_out: int, padding: str) -> nn.Module:
@@ -22,7 +22,9 @@ class UNet(nn.Module):
         padding: str = "circular",
     ):
         super().__init__()
-        self.dims, self.levels = dims, levels
+        if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
+            raise ValueError(f"levels must be an integer ≥ 0, not {levels!r}")
+        self.dims, self.levels, self.in_channels = dims, levels, in_channels
         widths = [width * 2**i for i in range(levels + 1)]
         self.down = nn.ModuleList(
             [_double(dims, in_channels, widths[0], padding)]
@@ -35,6 +37,7 @@ class UNet(nn.Module):
         self.out = conv(dims, widths[0], out_channels, kernel=1, padding=padding)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        check_input("UNet", x, self.dims, self.in_channels)
         factor = 2**self.levels
         if any(s % factor for s in x.shape[2:]):
             raise ValueError(

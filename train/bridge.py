@@ -65,6 +65,7 @@ import numpy as np
 import torch
 
 from adjointsim import Stepper
+from adjointsim.files import short
 from adjointsim.stepper import FLOAT_DTYPES
 
 #: counts adjoint sweeps, so tests can prove that a training mode never ran one
@@ -77,6 +78,11 @@ _LIVE: weakref.WeakValueDictionary[int, Stepper] = weakref.WeakValueDictionary()
 @torch.compiler.assume_constant_result
 def _key(stepper: Stepper) -> int:
     """The integer the operators know ``stepper`` by (entered in the table on first use)."""
+    if not isinstance(stepper, Stepper):
+        what = (f"the class {stepper.__name__}" if isinstance(stepper, type)
+                else f"{type(stepper).__name__} {short(stepper)}")
+        raise TypeError(f"the solver given is {what}, not a scene of one; pass an instance, "
+                        "such as adjointsim.get(name).default() or adjointsim.get(name)(n=...)")
     key = id(stepper)
     if _LIVE.get(key) is not stepper:
         _LIVE[key] = stepper
@@ -151,7 +157,12 @@ def _forward(
     p = stepper.param_array(params, u.dtype)
     store = grad and checkpoint is None
     # Zero steps or an empty batch call no kernel: the stepper's fast path sees to that.
-    states = stepper.rollout_prepared(u, n, c, p, keep="all" if keep_all or store else "last")
+    try:
+        states = stepper.rollout_prepared(u, n, c, p, keep="all" if keep_all or store else "last")
+    except MemoryError as e:
+        if keep_all or not store:  # the result itself is too large: a checkpoint would not help
+            raise
+        raise stepper.keep_all_error(n, e) from None
     if keep_all:
         out = states.copy() if store else states
     elif store:

@@ -211,3 +211,11 @@ def test_every_solver_passes_gradcheck(steps, seed):
 def test_every_solver_passes_gradcheck_in_float32(seed):
     failed = [r for r in check(dtype="float32", seed=seed) if not r.passed]
     assert not failed, failed
+
+
+@pytest.mark.parametrize(("batch", "error"), [(0, ValueError), (-1, ValueError), (2.5, ValueError),
+                                              ("2", TypeError)])
+def test_a_batch_that_is_not_a_positive_integer_is_named(batch, error):
+    """batch=0 failed in numpy's reduction ('zero-size array to reduction operation')."""
+    with pytest.raises(error, match="diffusion1d-ftcs: batch must be"):
+        check_stepper(adjointsim.get("diffusion1d-ftcs").default(), steps=2, batch=batch)

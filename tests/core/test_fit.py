@@ -82,6 +82,10 @@ def test_fit_rejects_bad_input():
         fit(heat, {2: np.full_like(u, np.nan)})
     with pytest.raises(ValueError, match="not a gradient-based"):
         fit(heat, {2: u}, method="Nelder-Mead")
+    for weight in ("1e-3", None):
+        with pytest.raises(TypeError, match=f"tikhonov must be a finite number ≥ 0, not "
+                                            f"{weight!r}"):
+            fit(heat, {2: u}, tikhonov=weight)
     with pytest.raises(ValueError, match="not fitted"):
         fit(heat, {2: u}, bounds={"nu": (0, 1)})
     with pytest.raises(ValueError, match="u0 is needed"):

@@ -443,3 +443,31 @@ def test_a_trajectory_of_the_wrong_shape_or_dtype_says_what_is_expected():
                                             "state is float64"):
             s.vjp(u, 5, u, trajectory=wrong)
     assert same_bits(s.vjp(u, 5, u, trajectory=list(traj)).state, s.vjp(u, 5, u).state)
+
+
+def test_a_trajectory_of_another_rollout_is_refused_not_reversed():
+    """the trajectory of 2·u0 gave twice the parameter gradient without a word."""
+    s = FTCS(n=16)
+    u = s.random_state(np.random.default_rng(8), 2)
+    with pytest.raises(ValueError, match=r"trajectory\[0\] is not u0, so the trajectory is of "
+                                         r"another rollout; pass rollout\(\.\.\., keep=\"all\"\)"):
+        s.vjp(u, 4, u, wrt_params=True, trajectory=s.rollout(2 * u, 4, keep="all"))
+
+
+def test_wrt_params_is_a_flag_not_any_truthy_value():
+    s = FTCS(n=16)
+    u = s.random_state(np.random.default_rng(8), 2)
+    with pytest.raises(TypeError,
+                       match="diffusion1d-ftcs: wrt_params must be True or False, got str 'no'"):
+        s.vjp(u, 2, u, wrt_params="no")
+
+
+def test_a_reverse_pass_too_long_to_keep_names_checkpointing():
+    """numpy's 'Unable to allocate' gave the size but not the way around it."""
+    s = FTCS(n=2**20)
+    u = np.zeros(s.state_shape())
+    n = 10**7  # 76 TiB of states: beyond what any machine's overcommit lets through
+    with pytest.raises(MemoryError, match=rf"diffusion1d-ftcs: keeping the {n + 1} states of the "
+                                          r"rollout for the reverse pass needs more memory than "
+                                          r"there is \(.*\); pass checkpoint=s"):
+        s.vjp(u, n, u)

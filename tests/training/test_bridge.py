@@ -461,3 +461,25 @@ def test_inputs_that_are_neither_tensors_nor_arrays_are_refused_by_name():
     with pytest.raises(TypeError, match=r"u0 is a NumPy array of dtype int64; expected float32 "
                        r"or float64 \(convert with u0.astype\(np.float64\)\)"):
         bridge.rollout(stepper, u.astype(np.int64), 1)
+
+
+def test_something_other_than_a_scene_is_named_not_a_weakref_error():
+    """a registry name or a solver class failed deep in weakref or in the stepper's checks."""
+    cls = adjointsim.get("diffusion1d-ftcs")
+    u0 = torch.zeros(2, 1, 16)
+    for solver, what in (("diffusion1d-ftcs", "str 'diffusion1d-ftcs'"),
+                         (cls, f"the class {cls.__name__}")):
+        with pytest.raises(TypeError, match=f"the solver given is {what}, not a scene of one; "
+                                            r"pass an instance, such as adjointsim\.get\(name\)"):
+            bridge.rollout(solver, u0, 3)
+        with pytest.raises(TypeError, match=f"the solver given is {what}"):
+            bridge.step(solver, u0)
+        with pytest.raises(TypeError, match=f"the solver given is {what}"):
+            bridge.rollout_grouped([(solver, slice(None))], u0, 3)
+
+
+def test_a_tape_too_long_to_keep_names_checkpointing():
+    s = adjointsim.get("diffusion1d-ftcs")(n=2**20)
+    u0 = torch.zeros(1, 1, 2**20, dtype=torch.float64, requires_grad=True)
+    with pytest.raises(MemoryError, match=r"keeping the 10000001 states .*; pass checkpoint=s"):
+        bridge.rollout(s, u0, 10**7)

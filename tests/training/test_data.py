@@ -274,3 +274,11 @@ def test_data_never_replaces_a_file_silently(tmp_path, capsys):
     assert target.read_text() == "not yours"
     assert main(["data", "ks", "--size", "tiny", "--out", str(tmp_path), "--no-progress"]) == 2
     assert "is a directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("length", "stride"), [(0, 1), (-1, 1), (3, 0), (3, 1.5)])
+def test_windows_refuse_a_length_or_stride_below_one(tiny, length, stride):
+    """length 0 or -1 gave windows starting past the trajectories' end; stride 0 divided by 0."""
+    split = datamod.load(tiny).splits["train"]
+    with pytest.raises(ValueError, match=r"windows: (length|stride) must be an integer ≥ 1"):
+        datamod.windows(split, length, stride)

@@ -47,3 +47,31 @@ def test_mlp_activations():
 def test_unet_rejects_indivisible_grids():
     with pytest.raises(ValueError, match="divisible by 4"):
         UNet(1, 1, 1, levels=2)(torch.randn(1, 1, 18))
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda: ResNet(1, 1, kernel=4), "kernel must be odd to keep the grid size, not 4"),
+    (lambda: ResNet(1, 1, width=-4), r"channels must be an integer ≥ 1, not -4"),
+    (lambda: ResNet(0, 1), r"channels must be an integer ≥ 1, not 0"),
+    (lambda: UNet(1, 1, levels=-1), r"levels must be an integer ≥ 0, not -1"),
+])
+def test_a_network_that_cannot_keep_the_grid_is_refused_when_built(make, message):
+    """an even kernel failed only in forward, a negative width or level in torch or indexing."""
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+@pytest.mark.parametrize(("net", "x", "message"), [
+    (ResNet(1, 1, blocks=1), torch.zeros(2, 1, 16, 16),
+     r"ResNet takes a tensor of shape \(batch, 1, N\), not \(2, 1, 16, 16\)"),
+    (UNet(2, 1, 2), torch.zeros(2, 1, 16, 16),
+     r"UNet takes a tensor of shape \(batch, 2, H, W\), not \(2, 1, 16, 16\)"),
+    (DilatedResNet(1, 1), torch.zeros(1, 1, 4),
+     r"DilatedResNet needs at least 8 grid points per axis .*, not \(4,\)"),
+])
+def test_an_input_the_network_cannot_take_is_named_with_the_network(net, x, message):
+    """torch's own errors named a padding size or 'wrapping around more than once'."""
+    with pytest.raises(ValueError, match=message):
+        net(x)
+    # zero padding has no wrap-around limit
+    assert DilatedResNet(1, 1, padding="zeros")(torch.zeros(1, 1, 4)).shape == (1, 1, 4)
