@@ -258,6 +258,8 @@ def problem(
                          f"{', '.join(GRADIENT_METHODS)}")
     fit_state, fit_controls, fit_names = parse_wrt(stepper, wrt)
     for what, lam in (("tikhonov", tikhonov), ("smoothness", smoothness)):
+        if isinstance(lam, np.ndarray) and lam.ndim == 0:
+            lam = lam[()]
         if isinstance(lam, bool) or not isinstance(lam, numbers.Real):
             raise TypeError(f"{what} must be a finite number ≥ 0, not {short(lam)}")
         if not (math.isfinite(lam) and lam >= 0):

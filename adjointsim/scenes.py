@@ -9,6 +9,10 @@ from typing import Any
 from . import registry
 from .stepper import Stepper
 
+#: how numpy's ValueErrors begin when an array's size or a dimension cannot be indexed
+_NUMPY_TOO_LARGE = ("Maximum allowed size exceeded", "Maximum allowed dimension exceeded",
+                    "array is too big")
+
 
 def build(solver: str | type[Stepper], scene: dict[str, Any],
           fixed: dict[str, Any] | None = None) -> Stepper:
@@ -32,7 +36,7 @@ def build(solver: str | type[Stepper], scene: dict[str, Any],
     except ValueError as e:
         # numpy's words for an array too large to index name no key; like a grid too large
         # to allocate, it is a size the machine cannot hold
-        if str(e) != "Maximum allowed size exceeded":
+        if not str(e).startswith(_NUMPY_TOO_LARGE):
             raise
         raise MemoryError(f"{cls.name} with {scene} asks for arrays larger than numpy can "
                           "index") from None

@@ -19,10 +19,7 @@ def conv(dims: int, c_in: int, c_out: int, kernel: int = 3, dilation: int = 1,
         raise ValueError(f"dims must be 1 or 2, not {dims}")
     if padding not in PADDINGS:
         raise ValueError(f"padding must be one of {', '.join(PADDINGS)}, not {padding!r}")
-    for name, value in (("channels", c_in), ("channels", c_out), ("kernel", kernel),
-                        ("dilation", dilation)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-            raise ValueError(f"{name} must be an integer ≥ 1, not {value!r}")
+    check_sizes(channels=c_in, out_channels=c_out, kernel=kernel, dilation=dilation)
     if kernel % 2 == 0:  # an even kernel has no centre: the output would grow by a point
         raise ValueError(f"kernel must be odd to keep the grid size, not {kernel}")
     cls = nn.Conv1d if dims == 1 else nn.Conv2d
@@ -30,6 +27,16 @@ def conv(dims: int, c_in: int, c_out: int, kernel: int = 3, dilation: int = 1,
         c_in, c_out, kernel, padding=dilation * (kernel // 2), dilation=dilation,
         padding_mode=padding,
     )
+
+
+def check_sizes(least: int = 1, **sizes: object) -> None:
+    """Refuse a size (a width, a count of channels, blocks or levels) that is not an integer of
+    at least ``least``, naming its argument."""
+    for name, value in sizes.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{name} must be an integer ≥ {least}, not {value!r}")
+        if value < least:
+            raise ValueError(f"{name} must be an integer ≥ {least}, not {value!r}")
 
 
 def check_input(net: str, x: torch.Tensor, dims: int, channels: int, smallest: int = 1) -> None:
@@ -41,6 +48,7 @@ def check_input(net: str, x: torch.Tensor, dims: int, channels: int, smallest: i
         raise ValueError(f"{net} takes a tensor of shape (batch, {channels}, {grid}), not "
                          f"{tuple(x.shape)}")
     if min(x.shape[2:]) < smallest:
-        raise ValueError(f"{net} needs at least {smallest} grid points per axis (its widest "
-                         f"kernel wraps a smaller periodic grid more than once), not "
+        why = (" (its widest kernel wraps a smaller periodic grid more than once)"
+               if smallest > 1 else "")
+        raise ValueError(f"{net} needs at least {smallest} grid point(s) per axis{why}, not "
                          f"{tuple(x.shape[2:])}")

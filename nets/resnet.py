@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .layers import check_input, conv
+from .layers import check_input, check_sizes, conv
 
 PRESETS = {"small": (26, 8), "large": (52, 12)}
 
@@ -38,9 +38,11 @@ class ResNet(nn.Module):
         padding: str = "circular",
     ):
         super().__init__()
+        check_sizes(in_channels=in_channels, out_channels=out_channels, width=width)
+        check_sizes(0, blocks=blocks)
         dilations = dilations or (1,) * blocks
         self.dims, self.in_channels = dims, in_channels
-        self.smallest = max(dilations) * (kernel // 2) if padding == "circular" else 1
+        self.smallest = max((1, *dilations)) * (kernel // 2) if padding == "circular" else 1
         self.encode = conv(dims, in_channels, width, kernel, padding=padding)
         self.blocks = nn.Sequential(*[_Block(dims, width, kernel, d, padding) for d in dilations])
         self.decode = conv(dims, width, out_channels, kernel, padding=padding)

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .layers import check_input, conv
+from .layers import check_input, check_sizes, conv
 
 
 def _double(dims: int, c_in: int, c_out: int, padding: str) -> nn.Module:
@@ -22,8 +22,8 @@ class UNet(nn.Module):
         padding: str = "circular",
     ):
         super().__init__()
-        if isinstance(levels, bool) or not isinstance(levels, int) or levels < 0:
-            raise ValueError(f"levels must be an integer ≥ 0, not {levels!r}")
+        check_sizes(in_channels=in_channels, out_channels=out_channels, width=width)
+        check_sizes(0, levels=levels)
         self.dims, self.levels, self.in_channels = dims, levels, in_channels
         widths = [width * 2**i for i in range(levels + 1)]
         self.down = nn.ModuleList(

@@ -213,9 +213,11 @@ def test_every_solver_passes_gradcheck_in_float32(seed):
     assert not failed, failed
 
 
-@pytest.mark.parametrize(("batch", "error"), [(0, ValueError), (-1, ValueError), (2.5, ValueError),
-                                              ("2", TypeError)])
-def test_a_batch_that_is_not_a_positive_integer_is_named(batch, error):
+@pytest.mark.parametrize("key", ["steps", "batch"])
+@pytest.mark.parametrize("value", [0, -1, 2.5, "2", True])
+def test_steps_or_a_batch_that_is_not_a_positive_integer_is_named(key, value):
     """batch=0 failed in numpy's reduction ('zero-size array to reduction operation')."""
-    with pytest.raises(error, match="diffusion1d-ftcs: batch must be"):
-        check_stepper(adjointsim.get("diffusion1d-ftcs").default(), steps=2, batch=batch)
+    sizes = {"steps": 2, "batch": 2, key: value}
+    with pytest.raises(ValueError, match=f"diffusion1d-ftcs: {key} must be a positive integer, "
+                                         f"not {value!r}$"):
+        check_stepper(adjointsim.get("diffusion1d-ftcs").default(), **sizes)

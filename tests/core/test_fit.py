@@ -86,6 +86,7 @@ def test_fit_rejects_bad_input():
         with pytest.raises(TypeError, match=f"tikhonov must be a finite number ≥ 0, not "
                                             f"{weight!r}"):
             fit(heat, {2: u}, tikhonov=weight)
+    assert problem(heat, {2: u}, tikhonov=np.array(0.1)).objective  # a 0-d array is a number
     with pytest.raises(ValueError, match="not fitted"):
         fit(heat, {2: u}, bounds={"nu": (0, 1)})
     with pytest.raises(ValueError, match="u0 is needed"):

@@ -464,10 +464,24 @@ def test_wrt_params_is_a_flag_not_any_truthy_value():
 
 def test_a_reverse_pass_too_long_to_keep_names_checkpointing():
     """numpy's 'Unable to allocate' gave the size but not the way around it."""
-    s = FTCS(n=2**20)
+    s = FTCS(n=2**22)
     u = np.zeros(s.state_shape())
-    n = 10**7  # 76 TiB of states: beyond what any machine's overcommit lets through
+    # 305 TiB of states: beyond x86-64's 128 TiB address space, so refused whatever the
+    # machine's overcommit policy (a smaller size could be granted and then filled)
+    n = 10**7
     with pytest.raises(MemoryError, match=rf"diffusion1d-ftcs: keeping the {n + 1} states of the "
                                           r"rollout for the reverse pass needs more memory than "
                                           r"there is \(.*\); pass checkpoint=s"):
         s.vjp(u, n, u)
+
+
+@pytest.mark.parametrize(("name", "n"), [("ks1d-etdrk4", 2**62), ("ns2d-etdrk4", 10**30),
+                                         ("poisson2d", 2**62)])
+def test_a_scene_beyond_numpys_largest_array_is_a_memory_error(name, n):
+    """numpy's three ways of saying so ('Maximum allowed size/dimension exceeded', 'array is
+    too big') name no key; the CLI shows a MemoryError as its one-line 'not enough memory'."""
+    from adjointsim import scenes
+
+    with pytest.raises(MemoryError, match=rf"{name} with \{{'n': {n}\}} asks for arrays larger "
+                                          "than numpy can index"):
+        scenes.build(name, {"n": n})

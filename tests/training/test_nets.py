@@ -1,5 +1,6 @@
 """Networks: shapes, periodicity (circular padding) and the List et al. parameter counts."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -51,8 +52,9 @@ def test_unet_rejects_indivisible_grids():
 
 @pytest.mark.parametrize(("make", "message"), [
     (lambda: ResNet(1, 1, kernel=4), "kernel must be odd to keep the grid size, not 4"),
-    (lambda: ResNet(1, 1, width=-4), r"channels must be an integer ≥ 1, not -4"),
-    (lambda: ResNet(0, 1), r"channels must be an integer ≥ 1, not 0"),
+    (lambda: ResNet(1, 1, width=-4), r"width must be an integer ≥ 1, not -4"),
+    (lambda: ResNet(0, 1), r"in_channels must be an integer ≥ 1, not 0"),
+    (lambda: UNet(1, 1, width=0), r"width must be an integer ≥ 1, not 0"),
     (lambda: UNet(1, 1, levels=-1), r"levels must be an integer ≥ 0, not -1"),
 ])
 def test_a_network_that_cannot_keep_the_grid_is_refused_when_built(make, message):
@@ -61,13 +63,22 @@ def test_a_network_that_cannot_keep_the_grid_is_refused_when_built(make, message
         make()
 
 
+def test_sizes_of_another_type_are_a_type_error_and_numpy_integers_are_sizes():
+    with pytest.raises(TypeError, match="width must be an integer ≥ 1, not 2.5"):
+        ResNet(1, 1, width=2.5)
+    unet = UNet(1, 1, levels=np.int64(1), width=np.int64(2))
+    assert unet(torch.zeros(1, 1, 8)).shape == (1, 1, 8)
+    # no blocks: the encoder and decoder alone, as before the sizes were checked
+    assert ResNet(1, 1, blocks=0)(torch.zeros(1, 1, 4)).shape == (1, 1, 4)
+
+
 @pytest.mark.parametrize(("net", "x", "message"), [
     (ResNet(1, 1, blocks=1), torch.zeros(2, 1, 16, 16),
      r"ResNet takes a tensor of shape \(batch, 1, N\), not \(2, 1, 16, 16\)"),
     (UNet(2, 1, 2), torch.zeros(2, 1, 16, 16),
      r"UNet takes a tensor of shape \(batch, 2, H, W\), not \(2, 1, 16, 16\)"),
     (DilatedResNet(1, 1), torch.zeros(1, 1, 4),
-     r"DilatedResNet needs at least 8 grid points per axis .*, not \(4,\)"),
+     r"DilatedResNet needs at least 8 grid point\(s\) per axis .*, not \(4,\)"),
 ])
 def test_an_input_the_network_cannot_take_is_named_with_the_network(net, x, message):
     """torch's own errors named a padding size or 'wrapping around more than once'."""
