@@ -222,14 +222,14 @@ def config_flags(p: argparse.ArgumentParser, cls: type, accepted: dict[str, Any]
         elif rule is not None and not isinstance(rule, str):
             text = f"{text}; {rule}" if text else str(rule)
         if kind in (int, float, str):
-            kwargs["type"] = _typed(kind, f.name)
+            kwargs["type"] = _typed(kind)
         else:
             kwargs["type"] = str
         p_help = f"{text + '; ' if text else ''}default {default!r}"
         group.add_argument("--" + f.name.replace("_", "-"), help=p_help, **kwargs)
 
 
-def _typed(kind: type, key: str) -> Callable[[str], Any]:
+def _typed(kind: type) -> Callable[[str], Any]:
     def parse(text: str) -> Any:
         try:
             return kind(text)

@@ -15,7 +15,6 @@ import torch
 
 from adjointsim.errors import DamagedFileError, RunExists
 from adjointsim.files import atomic_path
-from adjointsim.run import differing
 
 
 def _digest(payload: Any) -> str:
@@ -91,19 +90,6 @@ def load_checkpoint(path: str | Path, keys: Iterable[str] = ("model",),
             f"{path} is damaged: its contents do not match the SHA-256 digest stored with them "
             f"(a flipped bit on disk or an edited file); {recover}"
         )
-    return ckpt
-
-
-def load_run_checkpoint(path: Path, config: dict, keys: Iterable[str],
-                        resumable: Iterable[str] = ()) -> dict:
-    """The checkpoint of an unfinished run of ``config``, verified as :func:`load_checkpoint`
-    does; one written under another configuration (``resumable`` keys aside) is ``RunExists``
-    naming the keys."""
-    ckpt = load_checkpoint(path, keys, "delete it to start again")
-    differ = differing(config, ckpt["config"], resumable)
-    if differ:
-        raise RunExists(f"{path.parent} holds a run of another configuration (differs in "
-                        f"{', '.join(differ)}); choose another --out")
     return ckpt
 
 

@@ -13,7 +13,7 @@ control is the force, shape (B, 1), one per step. Differentiable parameters: ``g
 ``pole_mass``, ``total_mass``, ``length``.
 Adjoint: the transpose of the step's Jacobian, written out by the chain rule through the
 intermediate quantities (A_i, the denominator D_i, θ̈_i, ẍ) in reverse order; see
-``_step_adjoint``. Choices: the note's equations are taken literally (M does not grow with
+``_step_adjoint``. Choices: the paper's equations are taken literally (M does not grow with
 the number of poles; the poles interact only through the cart).
 """
 
@@ -139,7 +139,7 @@ def cartpole_adjoint(states, ctrl, p, cot, cmap, ubar, cbar, pbar, want_p, dt):
 
 @register
 class CartPole(Stepper):
-    """``poles`` (1..4) poles on one cart pushed by a force; the note's constants by default."""
+    """``poles`` (1..4) poles on one cart pushed by a force; the paper's constants by default."""
 
     name = "cartpole"
     point_cost = 9.0

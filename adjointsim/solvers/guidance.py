@@ -15,7 +15,7 @@ State (B, 4, D + E): channels (x, y, ẋ, ẏ), agents the D drivers then the E 
 Adjoint: every pair force is φ(ρ) r with r = x_i − x_j, ρ = |r|, so its transpose Jacobian
 maps a cotangent f̄ to r̄ = φ f̄ + φ'(ρ) (r·f̄) r/ρ (added to x̄_i, subtracted from x̄_j), with
 φ = k/d² (φ' = −2k/d³) or φ = k(0.5/d − 1)/d (φ' = k(d − 1)/d³); the control force is linear in
-c and in x_i − C. Choices: rot90(v) = (−v_y, v_x) (counter-clockwise, the note does not say);
+c and in x_i − C. Choices: rot90(v) = (−v_y, v_x) (counter-clockwise, the paper does not say);
 the evader-driver term reads 15·Σ(−1/d²)(x_d − x_e) = 15·Σ(x_e − x_d)/d², a repulsion; the
 derivative of |r| is undefined where two agents coincide (never met from the task's states).
 """

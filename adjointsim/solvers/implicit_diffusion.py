@@ -65,7 +65,7 @@ def theta_adjoint(
             dst = unext if h == halves - 1 else ustar
             ft = fxt if h == 0 else fyt
             if _half_step_adjoint(cur, other, lap, src, dst, h, halves, sc, dnu, ft, cbar, k,
-                                  p, pbar, want_p, g, bc):
+                                  pbar, want_p, g, bc):
                 cur, other, swapped = other, cur, not swapped
         if cmap[k] >= 0:
             cur += cot[cmap[k]]
@@ -146,8 +146,8 @@ def _half_step(src, dst, h, sc, f, ctrl, k, p, g, bc):
 
 
 @njit(cache=True, nogil=True)
-def _half_step_adjoint(r, out, lap, src, dst, h, halves, sc, dnu, ft, cbar, k, p, pbar,
-                       want_p, g, bc):
+def _half_step_adjoint(r, out, lap, src, dst, h, halves, sc, dnu, ft, cbar, k, pbar, want_p, g,
+                       bc):
     """Reverse half step h: r ← T⁻ᵀ r, then Eᵀ r goes to ``out`` (returns True) or, when
     E = I, stays in ``r`` (returns False). ``lap`` is scratch space."""
     e = _explicit_axis(h, halves)

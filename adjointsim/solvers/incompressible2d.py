@@ -929,14 +929,14 @@ class _Geometry:
             lo, hi = _face_cells(i, nx, px)
             for j in range(ny):
                 ukind[i, j], uprof[i, j] = _face_kind(
-                    name, i, nx, lo, hi, self.fluid[lo, j] if lo >= 0 else None,
+                    name, i, nx, self.fluid[lo, j] if lo >= 0 else None,
                     self.fluid[hi, j] if hi >= 0 else None, sides[0], sides[1], shape_x[j],
                     "left" if i == 0 else "right")
         for j in range(ny + 1):
             lo, hi = _face_cells(j, ny, py)
             for i in range(nx):
                 vkind[i, j], vprof[i, j] = _face_kind(
-                    name, j, ny, lo, hi, self.fluid[i, lo] if lo >= 0 else None,
+                    name, j, ny, self.fluid[i, lo] if lo >= 0 else None,
                     self.fluid[i, hi] if hi >= 0 else None, sides[2], sides[3], shape_y[i],
                     "bottom" if j == 0 else "top")
         self.ukind, self.vkind, self.uprof, self.vprof = ukind, vkind, uprof, vprof
@@ -1091,7 +1091,7 @@ def _profile(profile: str, n: int) -> np.ndarray:
     return s * (1.0 - s) / np.mean(s * (1.0 - s))
 
 
-def _face_kind(name, i, n, lo, hi, fluid_lo, fluid_hi, side_lo, side_hi, prof, where):
+def _face_kind(name, i, n, fluid_lo, fluid_hi, side_lo, side_hi, prof, where):
     """Kind and inflow value (per unit speed, positive along the axis) of face i of n."""
     if 0 < i < n:
         return (FREE if fluid_lo and fluid_hi else FIXED), 0.0

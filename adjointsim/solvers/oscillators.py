@@ -5,8 +5,9 @@ Continuous (N oscillators in a chain with free ends, neighbours j = i ± 1):
     v̇_i = −k x_i + Σ_j [ℓ (x_j − x_i) + c (x_j − x_i)³] + g u(t) δ_{i,N−1},
 with the differentiable parameters k (``stiffness``), ℓ (``linear_coupling``), c
 (``cubic_coupling``) and g (``gain``). Defaults: the nonlinear oscillators of the half-inverse
-gradients paper (hig.md: k = 1, ℓ = 0, c = 1, g = 3, Δt = 0.125); :meth:`Oscillators.linear_chain`
-is the PBDL book's linear chain (k = 1, ℓ = 0.2, c = 0, g = 1, Δt = 0.5).
+gradients paper (Schnell, Holl & Thuerey 2022: k = 1, ℓ = 0, c = 1, g = 3, Δt = 0.125);
+:meth:`Oscillators.linear_chain` is the PBDL book's linear chain (k = 1, ℓ = 0.2, c = 0, g = 1,
+Δt = 0.5).
 Discrete: the state is (x, v) as two channels, shape (B, 2, N); classical RK4 with the control
 u_k held over the step, y_{k+1} = y_k + Δt/6 (K1 + 2K2 + 2K3 + K4), K_s = F(Z_s, u_k),
 Z_1 = y_k, Z_2 = y_k + Δt/2 K1, Z_3 = y_k + Δt/2 K2, Z_4 = y_k + Δt K3.

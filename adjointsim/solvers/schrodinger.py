@@ -1,7 +1,7 @@
 """Schrödinger equation in 1D with a dipole control, Crank–Nicolson in time.
 
 Continuous (units ħ = 1, particle mass m, default m = 1; m = 1/2 gives the −∂xx Hamiltonian of
-the quantum control tasks in stable_bptt.md and hig.md):
+the quantum control tasks of Schnell & Thuerey 2024 and of the half-inverse gradients paper):
     i ψ_t = H(t) ψ,  H(t) = −1/(2m) ∂xx + s V(x) + u(t) x  on [0, L], ψ = 0 at both walls,
 with an optional static potential profile V of strength s (differentiable parameter
 ``potential``) and a scalar dipole control u(t) per batch element.

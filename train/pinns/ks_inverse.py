@@ -19,7 +19,7 @@ class KSInverse(PinnProblem):
     Data: ``ks1d-etdrk4`` (N = 64, L = 22, Δt = 0.1, α = β = 1) from the smooth random state
     of ``adjointsim fit --demo ks-params`` (rng 1234), 100 steps: a 64 × 101 space-time grid,
     t ∈ [0, 10]. The seed draws the points and the network; the trajectory is fixed.
-    Objectives, added one after another (the note's sequential training, with periodicity as
+    Objectives, added one after another (Maddu et al.'s sequential training, with periodicity as
     the constraint where the active-turbulence problem has incompressibility):
 
     * ``data``: MSE of u against ``collocation`` grid values drawn from the trajectory;

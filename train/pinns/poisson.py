@@ -1,4 +1,4 @@
-"""The multi-scale Poisson problem (Maddu et al., MLST 2022), as in their note.
+"""The multi-scale Poisson problem (Maddu et al., MLST 2022), as in their paper.
 
 Δu = −2ω² cos(ωx) sin(ωy) on [0, 1]², ω = kπ, k = 1..6, exact solution u = cos(ωx) sin(ωy).
 L_res = mean of the squared residual over ``collocation`` points drawn (without replacement)

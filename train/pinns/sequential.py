@@ -13,7 +13,7 @@ from . import PROBLEMS, PinnProblem, Standardized, tanh_mlp
 
 @PROBLEMS.register
 class Sequential(PinnProblem):
-    """In the setting of the note's active-turbulence problem: the target is
+    """In the setting of Maddu et al.'s active-turbulence problem: the target is
     u* = sin(2πx) sin(2πy) on [0, 1]², with three objectives at ``collocation`` uniform
     points, each met exactly by u*:
 

@@ -1,4 +1,5 @@
-"""Sobolev training (the note's problem 2): a function fitted together with its derivatives."""
+"""Sobolev training (Maddu et al.'s problem 2): a function fitted together with its
+derivatives."""
 
 from __future__ import annotations
 

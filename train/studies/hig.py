@@ -140,12 +140,12 @@ def table(rows: list[dict]) -> str:
                      "median over seeds [min, max])")
         for x in [head, *body]:
             lines.append("  ".join(c.ljust(w) for c, w in zip(x, widths)))
-        lines.append(_verdict(problem, mine))
+        lines.append(_verdict(mine))
         lines.append("")
     return "\n".join(lines)
 
 
-def _verdict(problem: str, rows: list[dict]) -> str:
+def _verdict(rows: list[dict]) -> str:
     """HIG against Adam and GN per seed at the last mark every run has reached (the budget,
     once they have finished: the same wall-clock)."""
     reached = [m for m in rows[0]["marks"] if all(str(m) in r["loss_at"] for r in rows)]

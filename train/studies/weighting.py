@@ -296,7 +296,7 @@ register_study(Study(name="weighting", sizes=tuple(SIZES), cells=cells, run_cell
 
 
 # ----------------------------------------------------------------------------- forgetting
-#: the ``weighting-forgetting`` study's variants of training: ID as the note gives it (α = 0.5,
+#: the ``weighting-forgetting`` study's variants of training: ID as Maddu et al. give it (α = 0.5,
 #: the problem's reference), without the moving average (α = 1), and with the largest spread
 #: as the reference (the same ratios λ_k s_k, a different overall scale); uniform
 VARIANTS = {"uniform": {"weighting": "uniform"},
