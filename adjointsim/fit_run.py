@@ -42,7 +42,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -52,6 +52,9 @@ from .files import atomic_path, pyplot, save_figure
 from .fit import GRADIENT_METHODS, FitResult, StartOutsideBoundsError, fit, parse_wrt, problem
 from .fit_demos import DEMOS, demo_problem, demo_scene
 from .run import SEEDS, Config, Interval, check_memory, plot_history
+
+if TYPE_CHECKING:
+    from .stepper import Stepper
 
 HISTORY_FIELDS = ("iteration", "misfit", "regularisation", "objective", "grad_norm",
                   "evaluations", "seconds", "cpu_seconds")
@@ -153,7 +156,7 @@ def read_observations(path: str | Path, solver: str | None) -> dict[str, Any]:
     return out
 
 
-def make_scene(name: str, config: dict):
+def make_scene(name: str, config: dict) -> Stepper:
     """The registered solver ``name`` built from its keywords ``config`` (an observation
     file's scene)."""
     try:
@@ -282,7 +285,7 @@ def _number(text: str, what: str, where: str, takes: str) -> float:
 
 
 # ----------------------------------------------------------------------------- the run
-def plot_fit(path: Path, scene, obs: dict[int, np.ndarray], result: FitResult,
+def plot_fit(path: Path, scene: Stepper, obs: dict[int, np.ndarray], result: FitResult,
              truth_u0: np.ndarray | None) -> None:
     """Fitted against observed states (first batch element and channel) at up to four observed
     steps, and the fitted initial state against the truth when it is known."""

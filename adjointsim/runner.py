@@ -45,12 +45,12 @@ import time
 import uuid
 import warnings
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from tqdm.auto import tqdm
@@ -58,6 +58,9 @@ from tqdm.auto import tqdm
 from adjointsim import parallel
 from adjointsim.errors import UserError
 from adjointsim.files import Keys, short, unfit, write_text
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 ROW_FILE = "row.json"
 LOCK_FILE = ".study.lock"
@@ -264,7 +267,7 @@ def _run_cells(stack: ExitStack, study: Study, todo: list[dict], size: str, out:
 
 
 @contextmanager
-def study_lock(out: Path):
+def study_lock(out: Path) -> Iterator[None]:
     """Hold the study directory ``out`` (created if need be) for this process: a second study
     there is refused with one line naming the first. The lock is the operating system's
     (``flock`` on ``OUT/.study.lock``) and goes with the process holding it, so the file left
@@ -992,7 +995,7 @@ def worker_problems(local: dict, probes: dict[str, dict]) -> list[str]:
     return problems
 
 
-def check_workers(client, out: Path, study: Study) -> None:
+def check_workers(client: Client, out: Path, study: Study) -> None:
     out.mkdir(parents=True, exist_ok=True)
     token = uuid.uuid4().hex
     write_text(out / ".runner-token", token)

@@ -14,6 +14,7 @@ the hand-written adjoint in the backward pass (WIG).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -22,6 +23,9 @@ from torch import nn
 from adjointsim import Stepper
 
 from . import bridge
+
+if TYPE_CHECKING:
+    from .unroll import GradientFlow
 
 SETUPS = ("prediction", "correction")
 CORRECTIONS = ("parallel", "sequential")
@@ -62,7 +66,12 @@ class NeuralStepper(nn.Module):
             return [(self.solver(float(unique[0])), slice(None))]
         return [(self.solver(float(p)), np.flatnonzero(values == p)) for p in unique]
 
-    def solve(self, u: torch.Tensor, params: torch.Tensor, groups=None) -> torch.Tensor:
+    def solve(
+        self,
+        u: torch.Tensor,
+        params: torch.Tensor,
+        groups: list[tuple[Stepper, np.ndarray | slice]] | None = None,
+    ) -> torch.Tensor:
         """One coarse-solver step of every batch element, each with its scene parameter."""
         return bridge.rollout_grouped(groups or self.groups(params), u.contiguous(), 1)
 
@@ -72,7 +81,11 @@ class NeuralStepper(nn.Module):
         return self.net(torch.cat([u, c], dim=1))
 
     def forward(
-        self, u: torch.Tensor, params: torch.Tensor, conditions: torch.Tensor, flow=None
+        self,
+        u: torch.Tensor,
+        params: torch.Tensor,
+        conditions: torch.Tensor,
+        flow: GradientFlow | None = None,
     ) -> torch.Tensor:
         """One step; ``flow`` (a :class:`adjointsim.train.unroll.GradientFlow`) stops gradients
         on the state fed into the network (``flow.net``) and into the solver (``flow.phys``)."""

@@ -68,7 +68,9 @@ class Problem:
     def coarse(self, param: float) -> Stepper:
         raise NotImplementedError
 
-    def initial_states(self, rng: np.random.Generator, param: float, count: int, split: str):
+    def initial_states(
+        self, rng: np.random.Generator, param: float, count: int, split: str
+    ) -> np.ndarray:
         raise NotImplementedError
 
     def condition(self, param: float) -> float:

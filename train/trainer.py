@@ -23,6 +23,7 @@ import dataclasses
 import functools
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -188,7 +189,7 @@ def describe(model: NeuralStepper) -> str:
     return f"{type(model.net).__name__}: {parameter_count(model.net):,} parameters"
 
 
-def plan(cfg: TrainConfig, n_windows) -> list[dict]:
+def plan(cfg: TrainConfig, n_windows: Callable[[int], int]) -> list[dict]:
     """Per stage: the flow, unroll horizon, batch size, iterations per epoch and in all;
     ``n_windows(length)`` counts the training windows of ``length`` frames."""
     stages = []

@@ -33,7 +33,7 @@ study sweeps it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -147,7 +147,7 @@ class GradientFlow:
             return _Gate.apply(x, self._switch)
         return x.detach() if self.mode in ("M", "S") else x
 
-    def control(self, fn, *inputs: torch.Tensor) -> torch.Tensor:
+    def control(self, fn: Callable[..., torch.Tensor], *inputs: torch.Tensor) -> torch.Tensor:
         """``fn(*inputs)`` (the network on ``net(x)``), as fed into the physics."""
         out = fn(*inputs)
         if not self.doubled:

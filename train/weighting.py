@@ -159,7 +159,8 @@ class InverseDirichlet(Scheme):
     name = "inverse-dirichlet"
     needs = "grads"
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         spread = _spreads(grads)
         ref = self.w.reference if self.w.reference in grads else None
         if ref is None:
@@ -185,7 +186,8 @@ class MaxAvg(Scheme):
     name = "max-avg"
     needs = "grads"
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         spread = _spreads(grads)
         ref = self.w.reference
         if ref in grads:
@@ -213,7 +215,8 @@ class MGDA(Scheme):
     needs = "grads"
     each_step = True
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         g = torch.stack(list(grads.values())).double()
         gram = (g @ g.T).numpy()
         if np.isfinite(gram).all():
@@ -269,7 +272,8 @@ class GradNorm(Scheme):
         super().__init__(w)
         self.initial: dict[str, float] = {}
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         for n, v in losses.items():
             if n not in self.initial and _usable(v):
                 self.initial[n] = v
@@ -292,10 +296,10 @@ class GradNorm(Scheme):
             lam.update({n: len(names) * v / total for n, v in new.items()})
         return {}
 
-    def state(self):
+    def state(self) -> dict:
         return {"initial": dict(self.initial)}
 
-    def load(self, state):
+    def load(self, state: Mapping) -> None:
         self.initial = dict(state.get("initial", {}))
 
 
@@ -317,7 +321,8 @@ class SoftAdapt(Scheme):
         super().__init__(w)
         self.previous: dict[str, float] = {}
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         names = [n for n in losses if n in self.previous]
         rates = [self.beta * (losses[n] - self.previous[n]) for n in names]
         self.previous = dict(losses)
@@ -325,10 +330,10 @@ class SoftAdapt(Scheme):
             self.w.weights.update(zip(names, (len(names) * p for p in _softmax(rates))))
         return {}
 
-    def state(self):
+    def state(self) -> dict:
         return {"previous": dict(self.previous)}
 
-    def load(self, state):
+    def load(self, state: Mapping) -> None:
         self.previous = dict(state.get("previous", {}))
 
 
@@ -356,7 +361,8 @@ class ReLoBRaLo(Scheme):
         bal = _softmax([losses[n] / (self.temperature * ref[n]) for n in losses])
         return [len(losses) * b for b in bal]
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         now = {n: losses[n] for n in losses if n in self.previous}
         fine = all(_usable(v) for v in (*now.values(), *(self.previous[n] for n in now)))
         if now and fine:
@@ -372,10 +378,10 @@ class ReLoBRaLo(Scheme):
                 self.previous[n] = v
         return {}
 
-    def state(self):
+    def state(self) -> dict:
         return {"initial": dict(self.initial), "previous": dict(self.previous)}
 
-    def load(self, state):
+    def load(self, state: Mapping) -> None:
         self.initial = dict(state.get("initial", {}))
         self.previous = dict(state.get("previous", {}))
 
@@ -392,7 +398,8 @@ class NTK(Scheme):
     name = "ntk"
     needs = "residuals"
 
-    def refresh(self, step, losses, grads):
+    def refresh(self, step: int, losses: dict[str, float],
+                grads: dict[str, torch.Tensor]) -> dict[str, float]:
         trace = {n: float(j.double().square().sum(dim=1).mean()) for n, j in grads.items()}
         total = sum(trace.values())
         if _usable(total):
@@ -415,7 +422,7 @@ class PCGrad(Scheme):
     each_step = True
     direction = True
 
-    def combine(self, grads, step):
+    def combine(self, grads: torch.Tensor, step: int) -> torch.Tensor:
         rng = np.random.default_rng([self.w.seed, step])
         norms2 = (grads * grads).sum(dim=1)
         out = grads.clone()
@@ -441,7 +448,7 @@ class ConFIG(Scheme):
     each_step = True
     direction = True
 
-    def combine(self, grads, step):
+    def combine(self, grads: torch.Tensor, step: int) -> torch.Tensor:
         norms = torch.linalg.vector_norm(grads, dim=1)
         g = grads[norms > 0]
         if not len(g):

@@ -38,10 +38,15 @@ modes |k_x|, k_y < min(n, m)/2; its adjoint is (m/n)² times resampling back, m 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import rocket_fft  # noqa: F401  (registers numpy.fft/scipy.fft for numba, loads the DUCC library)
 from numba import njit
 from rocket_fft import lowlevel
+
+if TYPE_CHECKING:
+    from numpy.typing import DTypeLike
 
 __all__ = [
     "apply_multiplier",
@@ -127,7 +132,10 @@ def laplacian_multiplier(n: int, length: float = 2 * np.pi) -> np.ndarray:
 
 
 def random_smooth_field(
-    rng: np.random.Generator, shape: tuple[int, ...], kmax: float = 4.0, dtype=np.float64
+    rng: np.random.Generator,
+    shape: tuple[int, ...],
+    kmax: float = 4.0,
+    dtype: DTypeLike = np.float64,
 ) -> np.ndarray:
     """Random real fields of shape (..., n, n) with modes |k| ≤ ``kmax`` only, unit RMS each."""
     n = _check_even(shape[-1])

@@ -96,7 +96,9 @@ class Karman(Problem):
     def condition(self, param: float) -> float:
         return float(param) / 1000.0
 
-    def initial_states(self, rng: np.random.Generator, param: float, count: int, split: str):
+    def initial_states(
+        self, rng: np.random.Generator, param: float, count: int, split: str
+    ) -> np.ndarray:
         solver = self.reference(param)
         nx, ny = solver.nx, solver.ny
         u = np.zeros(solver.state_shape(count))

@@ -52,7 +52,9 @@ class Kolmogorov(Problem):
     def condition(self, param: float) -> float:
         return float(param) / 1000.0
 
-    def initial_states(self, rng: np.random.Generator, param: float, count: int, split: str):
+    def initial_states(
+        self, rng: np.random.Generator, param: float, count: int, split: str
+    ) -> np.ndarray:
         return self.reference(param).random_state(rng, count)
 
     def to_coarse(self, u: np.ndarray) -> np.ndarray:

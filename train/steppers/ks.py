@@ -48,7 +48,9 @@ class KuramotoSivashinsky(Problem):
     def condition(self, param: float) -> float:
         return float(param)
 
-    def initial_states(self, rng: np.random.Generator, param: float, count: int, split: str):
+    def initial_states(
+        self, rng: np.random.Generator, param: float, count: int, split: str
+    ) -> np.ndarray:
         stepper = self.reference(param)
         x = stepper.nodes()  # solver units: x = 2π ξ with ξ ∈ [0, L), L = 8·factor
         length = 8.0 * param

@@ -4,6 +4,8 @@ level. Two terms, ``tracking`` and ``control`` (r_c included), that a weighting 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -23,16 +25,17 @@ class Guidance(Task):
         return ((x[:, :2, self.solver.drivers:] ** 2).sum(dim=1).mean(dim=1),
                 (c**2).flatten(1).mean(dim=1))
 
-    def row_loss(self, x, c, t):
+    def row_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
         track, effort = self._costs(x, c)
         return (track + self.level * effort) / self.steps
 
-    def step_terms(self, x, c, t):
+    def step_terms(self, x: torch.Tensor, c: torch.Tensor, t: int
+                   ) -> dict[str, torch.Tensor] | None:
         track, effort = self._costs(x, c)
         return {"tracking": track.mean() / self.steps,
                 "control": self.level * effort.mean() / self.steps}
 
-    def draw(self, fig, ax, states, t):
+    def draw(self, fig: Any, ax: Any, states: np.ndarray, t: np.ndarray) -> None:
         """The drivers' and evaders' paths."""
         nd = self.solver.drivers
         for i in range(states.shape[2]):

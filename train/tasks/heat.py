@@ -14,6 +14,8 @@ differentiable solvers (Holl, Koltun & Thuerey 2020).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -37,7 +39,7 @@ class Heat(Task):
         self.target = np.sin(self.level * np.pi * self.x / self.solver.length)[None]
         self._target = None
 
-    def initial_states(self, rng, count):
+    def initial_states(self, rng: np.random.Generator, count: int) -> np.ndarray:
         a = rng.uniform(-1.0, 1.0, (count, 3)) / np.arange(1, 4)
         modes = np.sin(np.pi * np.arange(1, 4)[:, None] * self.x / self.solver.length)
         return (a @ modes)[:, None]
@@ -52,15 +54,16 @@ class Heat(Task):
             track = ((x - self._target) ** 2).flatten(1).mean(dim=1)
         return track, EFFORT * (c**2).flatten(1).mean(dim=1) / self.steps
 
-    def row_loss(self, x, c, t):
+    def row_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
         track, effort = self._costs(x, c, t)
         return track + effort
 
-    def step_terms(self, x, c, t):
+    def step_terms(self, x: torch.Tensor, c: torch.Tensor, t: int
+                   ) -> dict[str, torch.Tensor] | None:
         track, effort = self._costs(x, c, t)
         return {"tracking": track.mean(), "control": effort.mean()}
 
-    def draw(self, fig, ax, states, t):
+    def draw(self, fig: Any, ax: Any, states: np.ndarray, t: np.ndarray) -> None:
         """The profile at the start and the end, and the target."""
         ax.plot(self.x, states[0, 0], color="C0", lw=1, label="t = 0")
         ax.plot(self.x, states[-1, 0], color="C3", label=f"t = {t[-1]:g}")

@@ -4,6 +4,8 @@ to eigenstate n (the level, 3..5) by a dipole field, loss Σ_t (1 − |⟨ψ_n|�
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 from torch import nn
@@ -28,7 +30,7 @@ class Quantum(Task):
         self._target = {dtype: torch.tensor(self.eigen[self.level - 1], dtype=dtype)
                         for dtype in (torch.float32, torch.float64)}
 
-    def initial_states(self, rng, count):
+    def initial_states(self, rng: np.random.Generator, count: int) -> np.ndarray:
         """(c1 e^{i p1} ψ1 + c2 e^{i p2} ψ2)/norm, c ~ N(0, 1), p ~ U(0, 2π)."""
         c = rng.standard_normal((count, 2))
         p = rng.uniform(0.0, 2.0 * np.pi, (count, 2))
@@ -37,7 +39,7 @@ class Quantum(Task):
         psi /= np.sqrt(self.solver.h * np.sum(np.abs(psi) ** 2, axis=1, keepdims=True))
         return np.stack([psi.real, psi.imag], axis=1)
 
-    def net(self):
+    def net(self) -> nn.Module:
         """Two strided convolutions and a linear layer (the paper's controller)."""
         n = self.solver.n
         points = (((n - 1) // 2) // 2) + 1  # after two stride-2 convolutions
@@ -47,12 +49,12 @@ class Quantum(Task):
             nn.Flatten(), nn.Linear(60 * points, 1),
         ))
 
-    def row_loss(self, x, c, t):
+    def row_loss(self, x: torch.Tensor, c: torch.Tensor, t: int) -> torch.Tensor | None:
         # ⟨ψ_n|ψ⟩ = h Σ ψ_n ψ (ψ_n real, both normalised as h Σ|ψ|² = 1)
         overlap = self.solver.h * (x @ self._target[x.dtype])  # (B, 2): real and imaginary
         return 1.0 - (overlap**2).sum(dim=1)
 
-    def draw(self, fig, ax, states, t):
+    def draw(self, fig: Any, ax: Any, states: np.ndarray, t: np.ndarray) -> None:
         """|ψ|² over t and x."""
         density = states[:, 0] ** 2 + states[:, 1] ** 2
         im = ax.imshow(density.T, aspect="auto", origin="lower",
