@@ -1,5 +1,5 @@
-"""Fourier pseudo-spectral ETDRK1–4 on a periodic 1D grid: the shared kernel, viscous Burgers and
-linear advection–diffusion.
+"""Fourier pseudo-spectral ETDRK1–4 on a periodic 1D grid: the kernel the 1D spectral solvers
+share (viscous Burgers, linear advection–diffusion, Kuramoto–Sivashinsky: each in its module).
 
 Continuous:  u_t = L u + N(u) + a g(x),  L diagonal in Fourier space, N(u) = −½ ∂_x(u²) (the
              conservative form, −½ i k · DFT(u²), optionally 2/3-dealiased), g a fixed forcing
@@ -38,7 +38,7 @@ from .. import validate
 from ..registry import register
 from ..spectral import fft1d
 from ..spectral.etdrk import etdrk_coefficient_derivatives, etdrk_coefficients
-from ..stepper import Choice, Range, Stepper
+from ..stepper import Stepper
 
 #: the largest stage tape kept between the forward and the adjoint sweep of a vjp
 TAPE_BYTES = 1 << 30
@@ -568,80 +568,6 @@ class ETDRKScene1D(Stepper):
             pbar[j] += np.sum(sens * b).real
 
 
-class BurgersETDRK(ETDRKScene1D):
-    """Viscous Burgers u_t + u u_x = ν u_xx (+ a g), parameter ``nu``."""
-
-    linear_params = ("nu",)
-    amplitude = 0.5
-    space = {
-        "n": Choice((16, 24, 32, 48)),
-        "nu": Range(0.05, 0.5),
-        "substeps": Range(1, 3, integer=True),
-        "dealias": Choice((False, True)),
-    }
-
-    def __init__(
-        self,
-        n: int = 32,
-        length: float = 2 * np.pi,
-        nu: float = 0.1,
-        dt: float = 0.05,
-        substeps: int = 1,
-        dealias: bool = False,
-        forcing: np.ndarray | None = None,
-        forcing_amplitude: float = 1.0,
-    ):
-        super().__init__(n, length, dt, (nu,), substeps, dealias, forcing, forcing_amplitude)
-
-    def linear_basis(self) -> list[np.ndarray]:
-        return [-self.k**2]
-
-    def check_params(self, p: np.ndarray) -> None:
-        validate.number(
-            self.name, "nu", p[0], ge=0,
-            why="the viscosity ν; ν < 0 is ill-posed: exp(−ν k² Δt) grows without bound",
-        )
-
-
-class AdvectionDiffusionETDRK(ETDRKScene1D):
-    """Linear advection–diffusion u_t + c u_x = ν u_xx (+ a g), parameters ``velocity``, ``nu``.
-    N ≡ 0 (or the constant forcing), so every order is exact in time."""
-
-    nonlinear = False
-    linear_params = ("velocity", "nu")
-    space = {
-        "n": Choice((16, 24, 32, 48)),
-        # (tiny |c| or ν leave the finite-difference reference of the checker to round-off)
-        "velocity": Range(0.25, 2.0),
-        "nu": Range(0.02, 0.5),
-        "substeps": Range(1, 3, integer=True),
-    }
-
-    def __init__(
-        self,
-        n: int = 32,
-        length: float = 2 * np.pi,
-        velocity: float = 1.0,
-        nu: float = 0.05,
-        dt: float = 0.05,
-        substeps: int = 1,
-        forcing: np.ndarray | None = None,
-        forcing_amplitude: float = 1.0,
-    ):
-        super().__init__(
-            n, length, dt, (velocity, nu), substeps, False, forcing, forcing_amplitude
-        )
-
-    def linear_basis(self) -> list[np.ndarray]:
-        return [-fft1d.derivative_multiplier(self.grid_shape[0], self.length, 1), -self.k**2]
-
-    def check_params(self, p: np.ndarray) -> None:
-        validate.number(
-            self.name, "nu", p[1], ge=0,
-            why="the viscosity ν; ν < 0 is ill-posed: exp(−ν k² Δt) grows without bound",
-        )
-
-
 def register_orders(base: type, prefix: str, namespace: dict) -> dict[int, type]:
     """Register ``{prefix}-etdrk1`` .. ``-etdrk4``, one subclass of ``base`` per order, as
     module attributes ``{base name}1`` .. ``4`` of ``namespace`` (so they pickle)."""
@@ -655,7 +581,3 @@ def register_orders(base: type, prefix: str, namespace: dict) -> dict[int, type]
         })
         namespace[name] = classes[order] = register(cls)
     return classes
-
-
-BURGERS = register_orders(BurgersETDRK, "burgers1d", globals())
-ADVECTION_DIFFUSION = register_orders(AdvectionDiffusionETDRK, "advdiff1d", globals())

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import adjointsim.solvers.kuramoto_sivashinsky as ks
-import adjointsim.solvers.spectral1d as sp
+from adjointsim.solvers.advection_diffusion1d import ADVECTION_DIFFUSION
+from adjointsim.solvers.burgers_spectral import BURGERS
 from adjointsim.spectral.etdrk import KEYS, etdrk_coefficient_derivatives, etdrk_coefficients
 
 mp = pytest.importorskip("mpmath")  # ships with torch (through sympy)
@@ -57,9 +58,9 @@ def burgers_errors(order: int) -> np.ndarray:
     n, T = 64, 1.0
     x = 2 * np.pi * np.arange(n) / n
     u0 = (0.5 * np.sin(x) + 0.2 * np.cos(2 * x))[None, None]
-    ref = sp.BURGERS[4](n=n, nu=0.1, dt=T / 1024).rollout(u0, 1024)
+    ref = BURGERS[4](n=n, nu=0.1, dt=T / 1024).rollout(u0, 1024)
     return np.array([
-        np.abs(sp.BURGERS[order](n=n, nu=0.1, dt=T / m).rollout(u0, m) - ref).max()
+        np.abs(BURGERS[order](n=n, nu=0.1, dt=T / m).rollout(u0, m) - ref).max()
         for m in (8, 16, 32)
     ])
 
@@ -79,7 +80,7 @@ def test_linear_problem_exact(order, substeps):
     n, length, c, nu, a = 32, 2 * np.pi, 0.7, 0.05, 0.3
     x = length * np.arange(n) / n
     g = np.cos(2 * x)[None]
-    stepper = sp.ADVECTION_DIFFUSION[order](
+    stepper = ADVECTION_DIFFUSION[order](
         n=n, velocity=c, nu=nu, dt=0.4, substeps=substeps, forcing=g, forcing_amplitude=a
     )
     u0 = (np.sin(x) + 0.5 * np.cos(3 * x))[None, None]

@@ -9,6 +9,8 @@ import adjointsim
 import adjointsim.solvers.kuramoto_sivashinsky as ks
 import adjointsim.solvers.spectral1d as sp
 from adjointsim.check import check_stepper
+from adjointsim.solvers.advection_diffusion1d import ADVECTION_DIFFUSION
+from adjointsim.solvers.burgers_spectral import BURGERS
 from tests.references.spectral1d import ROLLOUTS
 
 N = 32
@@ -20,13 +22,13 @@ SCENES = {
     "ks-etdrk3-substeps-dealias": lambda: ks.KS[3](substeps=2, dealias=True, length=4 * np.pi),
     "ks-etdrk4-forced": lambda: ks.KS[4](forcing=FORCING, forcing_amplitude=0.2),
     "ks-etdrk1-dealias": lambda: ks.KS[1](dealias=True, dt=0.2),
-    "burgers-etdrk2-forced-dealias": lambda: sp.BURGERS[2](forcing=FORCING, dealias=True, nu=0.2),
-    "burgers-etdrk1-substeps": lambda: sp.BURGERS[1](substeps=3, n=24, nu=0.2),
-    "burgers-etdrk4-n48": lambda: sp.BURGERS[4](n=48, nu=0.3, length=5.0),
-    "advdiff-etdrk4-forced-substeps": lambda: sp.ADVECTION_DIFFUSION[4](
+    "burgers-etdrk2-forced-dealias": lambda: BURGERS[2](forcing=FORCING, dealias=True, nu=0.2),
+    "burgers-etdrk1-substeps": lambda: BURGERS[1](substeps=3, n=24, nu=0.2),
+    "burgers-etdrk4-n48": lambda: BURGERS[4](n=48, nu=0.3, length=5.0),
+    "advdiff-etdrk4-forced-substeps": lambda: ADVECTION_DIFFUSION[4](
         substeps=2, forcing=FORCING, velocity=-1.3, nu=0.05
     ),
-    "advdiff-etdrk2-fast": lambda: sp.ADVECTION_DIFFUSION[2](nu=0.2, velocity=2.0),
+    "advdiff-etdrk2-fast": lambda: ADVECTION_DIFFUSION[2](nu=0.2, velocity=2.0),
 }
 
 
@@ -110,7 +112,7 @@ def test_mean_conserved(name):
 
 
 def test_advection_diffusion_norm_decays_and_burgers_energy_decays():
-    for stepper in (sp.ADVECTION_DIFFUSION[3](), sp.BURGERS[4](dealias=True)):
+    for stepper in (ADVECTION_DIFFUSION[3](), BURGERS[4](dealias=True)):
         u0 = stepper.random_state(np.random.default_rng(2), 2)
         energy = np.sum(stepper.rollout(u0, 100, keep="all") ** 2, axis=(2, 3))
         assert np.all(np.diff(energy, axis=0) <= 1e-12)
@@ -165,7 +167,7 @@ def test_tape_recompute_checkpoint_agree():
 
 
 def test_parameter_cotangents_only_when_asked(monkeypatch):
-    stepper = sp.BURGERS[2]()
+    stepper = BURGERS[2]()
     u0 = stepper.random_state(np.random.default_rng(5), 1)
 
     def fail(*args):
@@ -179,17 +181,17 @@ def test_bad_input():
     with pytest.raises(ValueError, match="even"):
         ks.KS[2](n=31)
     with pytest.raises(ValueError, match="nu must be a finite number ≥ 0, got -0.1"):
-        sp.BURGERS[2](nu=-0.1)
+        BURGERS[2](nu=-0.1)
     stepper = ks.KS[4]()
     u0 = stepper.random_state(np.random.default_rng(0), 1)
     with pytest.raises(ValueError, match="hyper_diffusion must be a finite number > 0, got 0.0"):
         stepper.rollout(u0, 1, params={"hyper_diffusion": 0.0})
     with pytest.raises(ValueError, match="dt must be a finite number > 0, got 0.0"):
-        sp.ADVECTION_DIFFUSION[1](dt=0.0)
+        ADVECTION_DIFFUSION[1](dt=0.0)
     with pytest.raises(ValueError, match=r"forcing must have shape \(1, 32\)"):
-        sp.BURGERS[1](forcing=np.ones(N))
+        BURGERS[1](forcing=np.ones(N))
     with pytest.raises(ValueError, match="substeps"):
-        sp.BURGERS[1](substeps=0)
+        BURGERS[1](substeps=0)
 
 
 @pytest.mark.slow
