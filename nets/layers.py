@@ -3,10 +3,10 @@ replicate padding for domains with walls and open sides."""
 
 from __future__ import annotations
 
-import numbers
-
 import torch
 from torch import nn
+
+from adjointsim import validate
 
 #: torch's padding modes a network accepts: periodic, zero, or the edge value repeated
 PADDINGS = ("circular", "zeros", "replicate")
@@ -19,7 +19,7 @@ def conv(dims: int, c_in: int, c_out: int, kernel: int = 3, dilation: int = 1,
         raise ValueError(f"dims must be 1 or 2, not {dims}")
     if padding not in PADDINGS:
         raise ValueError(f"padding must be one of {', '.join(PADDINGS)}, not {padding!r}")
-    check_sizes(channels=c_in, out_channels=c_out, kernel=kernel, dilation=dilation)
+    check_sizes("conv", in_channels=c_in, out_channels=c_out, kernel=kernel, dilation=dilation)
     if kernel % 2 == 0:  # an even kernel has no centre: the output would grow by a point
         raise ValueError(f"kernel must be odd to keep the grid size, not {kernel}")
     cls = nn.Conv1d if dims == 1 else nn.Conv2d
@@ -29,14 +29,11 @@ def conv(dims: int, c_in: int, c_out: int, kernel: int = 3, dilation: int = 1,
     )
 
 
-def check_sizes(least: int = 1, **sizes: object) -> None:
-    """Refuse a size (a width, a count of channels, blocks or levels) that is not an integer of
-    at least ``least``, naming its argument."""
+def check_sizes(net: str, least: int = 1, **sizes: object) -> None:
+    """Refuse a size of ``net`` (a width, a count of channels, blocks or levels) that is not an
+    integer of at least ``least``, naming its argument."""
     for name, value in sizes.items():
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            raise TypeError(f"{name} must be an integer ≥ {least}, not {value!r}")
-        if value < least:
-            raise ValueError(f"{name} must be an integer ≥ {least}, not {value!r}")
+        validate.integer(net, name, value, ge=least)
 
 
 def check_input(net: str, x: torch.Tensor, dims: int, channels: int, smallest: int = 1) -> None:

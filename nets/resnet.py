@@ -38,8 +38,9 @@ class ResNet(nn.Module):
         padding: str = "circular",
     ):
         super().__init__()
-        check_sizes(in_channels=in_channels, out_channels=out_channels, width=width)
-        check_sizes(0, blocks=blocks)
+        net = type(self).__name__
+        check_sizes(net, in_channels=in_channels, out_channels=out_channels, width=width)
+        check_sizes(net, 0, blocks=blocks)
         dilations = dilations or (1,) * blocks
         self.dims, self.in_channels = dims, in_channels
         self.smallest = max((1, *dilations)) * (kernel // 2) if padding == "circular" else 1

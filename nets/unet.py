@@ -22,8 +22,8 @@ class UNet(nn.Module):
         padding: str = "circular",
     ):
         super().__init__()
-        check_sizes(in_channels=in_channels, out_channels=out_channels, width=width)
-        check_sizes(0, levels=levels)
+        check_sizes("UNet", in_channels=in_channels, out_channels=out_channels, width=width)
+        check_sizes("UNet", 0, levels=levels)
         self.dims, self.levels, self.in_channels = dims, levels, in_channels
         widths = [width * 2**i for i in range(levels + 1)]
         self.down = nn.ModuleList(

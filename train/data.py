@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import numbers
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
+from adjointsim import validate
 from adjointsim.errors import DamagedFileError, UserError
 from adjointsim.files import atomic_path
 from adjointsim.stepper import NonFiniteStateError
@@ -374,9 +374,8 @@ def _check_split(
 def windows(split: Split, length: int, stride: int = 1) -> np.ndarray:
     """(trajectory, start frame) pairs of every window of ``length`` ≥ 1 frames, starting
     every ``stride`` ≥ 1 frames."""
-    for name, value in (("length", length), ("stride", stride)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-            raise ValueError(f"windows: {name} must be an integer ≥ 1, not {value!r}")
+    validate.integer("windows", "length", length, ge=1)
+    validate.integer("windows", "stride", stride, ge=1)
     s, t = split.trajectories.shape[:2]
     if length > t:
         raise UserError(f"windows of {length} frames (unroll + warmup + 1) do not fit the "

@@ -276,9 +276,10 @@ def test_data_never_replaces_a_file_silently(tmp_path, capsys):
     assert "is a directory" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("length", "stride"), [(0, 1), (-1, 1), (3, 0), (3, 1.5)])
-def test_windows_refuse_a_length_or_stride_below_one(tiny, length, stride):
+@pytest.mark.parametrize(("length", "stride", "error"), [
+    (0, 1, ValueError), (-1, 1, ValueError), (3, 0, ValueError), (3, 1.5, TypeError)])
+def test_windows_refuse_a_length_or_stride_below_one(tiny, length, stride, error):
     """length 0 or -1 gave windows starting past the trajectories' end; stride 0 divided by 0."""
     split = datamod.load(tiny).splits["train"]
-    with pytest.raises(ValueError, match=r"windows: (length|stride) must be an integer ≥ 1"):
+    with pytest.raises(error, match=r"windows: (length|stride) must be an integer"):
         datamod.windows(split, length, stride)

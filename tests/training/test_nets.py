@@ -52,10 +52,10 @@ def test_unet_rejects_indivisible_grids():
 
 @pytest.mark.parametrize(("make", "message"), [
     (lambda: ResNet(1, 1, kernel=4), "kernel must be odd to keep the grid size, not 4"),
-    (lambda: ResNet(1, 1, width=-4), r"width must be an integer ≥ 1, not -4"),
-    (lambda: ResNet(0, 1), r"in_channels must be an integer ≥ 1, not 0"),
-    (lambda: UNet(1, 1, width=0), r"width must be an integer ≥ 1, not 0"),
-    (lambda: UNet(1, 1, levels=-1), r"levels must be an integer ≥ 0, not -1"),
+    (lambda: ResNet(1, 1, width=-4), r"ResNet: width must be an integer ≥ 1, got -4"),
+    (lambda: ResNet(0, 1), r"ResNet: in_channels must be an integer ≥ 1, got 0"),
+    (lambda: UNet(1, 1, width=0), r"UNet: width must be an integer ≥ 1, got 0"),
+    (lambda: UNet(1, 1, levels=-1), r"UNet: levels must be an integer ≥ 0, got -1"),
 ])
 def test_a_network_that_cannot_keep_the_grid_is_refused_when_built(make, message):
     """an even kernel failed only in forward, a negative width or level in torch or indexing."""
@@ -64,7 +64,7 @@ def test_a_network_that_cannot_keep_the_grid_is_refused_when_built(make, message
 
 
 def test_sizes_of_another_type_are_a_type_error_and_numpy_integers_are_sizes():
-    with pytest.raises(TypeError, match="width must be an integer ≥ 1, not 2.5"):
+    with pytest.raises(TypeError, match="ResNet: width must be an integer, got float 2.5"):
         ResNet(1, 1, width=2.5)
     unet = UNet(1, 1, levels=np.int64(1), width=np.int64(2))
     assert unet(torch.zeros(1, 1, 8)).shape == (1, 1, 8)
